@@ -1,0 +1,182 @@
+//! Elastomer contact mechanics for vision-based tactile sensors: a ladder of solvers behind one
+//! trait ([`ContactSolver`]), each returning the same ground truth ([`Fields`]).
+//!
+//! Conventions: the gel grid and camera frame of [`sparsh_scene::grid`]; pressure `p ≥ 0`
+//! compresses the gel; tractions `qx, qy` are the shear stresses the indenter applies to the gel
+//! surface along +x, +y; `uz < 0` where the surface is pushed towards the camera. Units: mm, kPa,
+//! N (1 kPa · 1 mm² = 1 mN).
+#![warn(missing_docs)]
+
+mod geometric;
+
+use sparsh_scene::{GapField, Gel, Grid, SolverKind};
+
+pub use geometric::Geometric;
+
+/// How the normal problem is driven in a frame.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum NormalControl {
+    /// The gap field already holds the indenter's approach (displacement control).
+    Approach,
+    /// Find the extra rigid approach that gives this normal load (N).
+    Force(f64),
+}
+
+/// What a solver gets for one frame.
+#[derive(Debug, Clone, Copy)]
+pub struct ContactInput<'a> {
+    /// Gap at this frame's pose (mm; negative = penetration).
+    pub gap: &'a GapField,
+    /// Displacement or load control.
+    pub normal: NormalControl,
+    /// Rigid tangential displacement of the indenter's surface point above each cell since the
+    /// previous frame (mm, [dx, dy] per cell); drives stick and slip.
+    pub rigid_shift_mm: &'a [[f64; 2]],
+}
+
+/// Stick/slip state of a whole contact.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SlipState {
+    /// No cell in contact.
+    NoContact,
+    /// Every contact cell sticks.
+    Stick,
+    /// Some cells slip, some stick.
+    Partial,
+    /// Every contact cell slips.
+    Gross,
+}
+
+impl SlipState {
+    /// Classifies a contact from its masks.
+    pub fn from_masks(contact: &[bool], slip: &[bool]) -> SlipState {
+        let in_contact = contact.iter().filter(|&&c| c).count();
+        let slipping = contact.iter().zip(slip).filter(|(c, s)| **c && **s).count();
+        match (in_contact, slipping) {
+            (0, _) => SlipState::NoContact,
+            (_, 0) => SlipState::Stick,
+            (n, s) if s == n => SlipState::Gross,
+            _ => SlipState::Partial,
+        }
+    }
+
+    /// Lower-case name used in labels.
+    pub fn name(self) -> &'static str {
+        match self {
+            SlipState::NoContact => "no_contact",
+            SlipState::Stick => "stick",
+            SlipState::Partial => "partial",
+            SlipState::Gross => "gross",
+        }
+    }
+}
+
+/// Ground truth of one frame on the gel grid (row-major, like [`Grid`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Fields {
+    /// The gel grid.
+    pub grid: Grid,
+    /// Surface displacement along x (mm).
+    pub ux_mm: Vec<f64>,
+    /// Surface displacement along y (mm).
+    pub uy_mm: Vec<f64>,
+    /// Surface displacement along z (mm; negative towards the camera).
+    pub uz_mm: Vec<f64>,
+    /// Contact pressure (kPa, ≥ 0).
+    pub pressure_kpa: Vec<f64>,
+    /// Shear traction along x (kPa).
+    pub traction_x_kpa: Vec<f64>,
+    /// Shear traction along y (kPa).
+    pub traction_y_kpa: Vec<f64>,
+    /// Cells in contact.
+    pub contact: Vec<bool>,
+    /// Contact cells that slip.
+    pub slip: Vec<bool>,
+    /// Total force on the gel: [Σ qx dA, Σ qy dA, Σ p dA] (N); the normal load is positive.
+    pub force_n: [f64; 3],
+    /// Extra rigid approach found under load control (mm; 0 under displacement control).
+    pub approach_offset_mm: f64,
+}
+
+impl Fields {
+    /// All-zero fields: no contact.
+    pub fn zero(grid: Grid) -> Fields {
+        let n = grid.len();
+        Fields {
+            grid,
+            ux_mm: vec![0.0; n],
+            uy_mm: vec![0.0; n],
+            uz_mm: vec![0.0; n],
+            pressure_kpa: vec![0.0; n],
+            traction_x_kpa: vec![0.0; n],
+            traction_y_kpa: vec![0.0; n],
+            contact: vec![false; n],
+            slip: vec![false; n],
+            force_n: [0.0; 3],
+            approach_offset_mm: 0.0,
+        }
+    }
+
+    /// Stick/slip state of the contact.
+    pub fn slip_state(&self) -> SlipState {
+        SlipState::from_masks(&self.contact, &self.slip)
+    }
+
+    /// Contact area (mm²).
+    pub fn contact_area_mm2(&self) -> f64 {
+        self.contact.iter().filter(|&&c| c).count() as f64 * self.grid.cell_area_mm2()
+    }
+
+    /// Sums tractions into [`Fields::force_n`] (kPa · mm² → N), in a fixed order.
+    pub fn total_force_n(&self) -> [f64; 3] {
+        let da = self.grid.cell_area_mm2() * 1e-3;
+        let sum = |v: &[f64]| v.iter().sum::<f64>() * da;
+        [
+            sum(&self.traction_x_kpa),
+            sum(&self.traction_y_kpa),
+            sum(&self.pressure_kpa),
+        ]
+    }
+}
+
+/// A solver fails loudly instead of returning a quiet wrong answer.
+#[derive(Debug, thiserror::Error)]
+pub enum ContactError {
+    /// An iterative method did not reach its tolerance.
+    #[error("{solver}: no convergence after {iterations} iterations (residual {residual:.3e})")]
+    NotConverged {
+        /// Solver name.
+        solver: &'static str,
+        /// Iterations spent.
+        iterations: usize,
+        /// Final residual.
+        residual: f64,
+    },
+    /// The requested state is outside what the model can represent.
+    #[error("{solver}: outside validity: {reason}")]
+    OutOfValidity {
+        /// Solver name.
+        solver: &'static str,
+        /// Why.
+        reason: String,
+    },
+}
+
+/// One rung of the solver ladder. A solver keeps its own path history (previous tractions and
+/// slip), so frames of one trajectory must be solved in order; [`ContactSolver::reset`] starts a
+/// new trajectory.
+pub trait ContactSolver: Send {
+    /// Short name (`geometric`, …).
+    fn name(&self) -> &'static str;
+    /// Solves one frame.
+    fn solve(&mut self, input: &ContactInput) -> Result<Fields, ContactError>;
+    /// Forgets the path history.
+    fn reset(&mut self);
+}
+
+/// The solver a scene asks for, on `grid`.
+pub fn solver_for(kind: SolverKind, gel: &Gel, grid: Grid) -> Box<dyn ContactSolver> {
+    match kind {
+        SolverKind::Geometric => Box::new(Geometric::new(*gel, grid)),
+    }
+}

@@ -1,0 +1,601 @@
+//! Indenters: analytic primitives and triangle meshes (OBJ via tobj, glTF/GLB via gltf), each
+//! able to cast a ray against itself in its own frame.
+//!
+//! Local frame: the indenter's tip (lowest point) is the origin and its body extends towards +z,
+//! so a pose with position z = −d presses it d millimetres into the gel.
+
+use std::path::{Path, PathBuf};
+
+use glam::{DVec3, Mat4, Vec3, Vec3A};
+use obvhs::{
+    ray::{Ray, RayHit},
+    triangle::Triangle,
+};
+use serde::Deserialize;
+
+use crate::SceneError;
+
+/// Primitive shape or mesh named in `[indenter]`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ShapeKind {
+    /// Sphere of `radius_mm`.
+    Sphere,
+    /// Flat-ended cylinder (flat punch) of `radius_mm` and `height_mm`.
+    Cylinder,
+    /// Cone, tip down, of `half_angle_deg` (axis to face) and `height_mm`.
+    Cone,
+    /// Box of `size_mm` = [x, y, z], bottom face down.
+    Box,
+    /// Triangle mesh from `mesh` (.obj, .gltf, .glb).
+    Mesh,
+}
+
+/// Length unit of a mesh file.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum LengthUnit {
+    /// Millimetres.
+    #[default]
+    Mm,
+    /// Centimetres.
+    Cm,
+    /// Metres.
+    M,
+}
+
+impl LengthUnit {
+    fn to_mm(self) -> f64 {
+        match self {
+            LengthUnit::Mm => 1.0,
+            LengthUnit::Cm => 10.0,
+            LengthUnit::M => 1000.0,
+        }
+    }
+}
+
+/// Where a mesh's local origin goes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum Anchor {
+    /// Lowest vertex at z = 0, bounding box centred in x and y.
+    #[default]
+    Tip,
+    /// Keep the file's own origin.
+    Origin,
+}
+
+/// The `[indenter]` table as written in a scene file.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct IndenterSpec {
+    /// Shape kind.
+    pub shape: ShapeKind,
+    /// Sphere, cylinder radius (mm).
+    pub radius_mm: Option<f64>,
+    /// Cylinder and cone height (mm); default 10.
+    pub height_mm: Option<f64>,
+    /// Cone semi-angle between axis and face (degrees).
+    pub half_angle_deg: Option<f64>,
+    /// Box edge lengths (mm).
+    pub size_mm: Option<[f64; 3]>,
+    /// Mesh file, relative to the scene file.
+    pub mesh: Option<PathBuf>,
+    /// Mesh scale factor (after the unit conversion); default 1.
+    pub scale: Option<f64>,
+    /// Mesh length unit; default mm.
+    pub units: Option<LengthUnit>,
+    /// Mesh placement; default `tip`.
+    pub anchor: Option<Anchor>,
+}
+
+/// A triangle mesh in millimetres.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TriMesh {
+    /// Vertex positions (mm).
+    pub vertices: Vec<Vec3>,
+    /// Triangles as vertex indices.
+    pub triangles: Vec<[u32; 3]>,
+}
+
+impl TriMesh {
+    /// A UV sphere of `radius_mm` centred at (0, 0, radius) with `rings` latitude bands and
+    /// `segments` longitude sectors; its vertices lie on the sphere.
+    pub fn uv_sphere(radius_mm: f32, rings: u32, segments: u32) -> TriMesh {
+        let mut vertices = vec![Vec3::new(0.0, 0.0, 0.0)];
+        for r in 1..rings {
+            let theta = std::f32::consts::PI * r as f32 / rings as f32;
+            for s in 0..segments {
+                let phi = std::f32::consts::TAU * s as f32 / segments as f32;
+                vertices.push(Vec3::new(
+                    radius_mm * theta.sin() * phi.cos(),
+                    radius_mm * theta.sin() * phi.sin(),
+                    radius_mm * (1.0 - theta.cos()),
+                ));
+            }
+        }
+        vertices.push(Vec3::new(0.0, 0.0, 2.0 * radius_mm));
+        let top = vertices.len() as u32 - 1;
+        let at = |r: u32, s: u32| 1 + (r - 1) * segments + s % segments;
+        let mut triangles = Vec::new();
+        for s in 0..segments {
+            triangles.push([0, at(1, s + 1), at(1, s)]);
+            triangles.push([top, at(rings - 1, s), at(rings - 1, s + 1)]);
+        }
+        for r in 1..rings - 1 {
+            for s in 0..segments {
+                triangles.push([at(r, s), at(r, s + 1), at(r + 1, s + 1)]);
+                triangles.push([at(r, s), at(r + 1, s + 1), at(r + 1, s)]);
+            }
+        }
+        TriMesh {
+            vertices,
+            triangles,
+        }
+    }
+
+    /// Reads an `.obj`, `.gltf` or `.glb` file (positions only), converted to millimetres.
+    pub fn load(path: &Path, unit: LengthUnit, scale: f64) -> Result<TriMesh, SceneError> {
+        let err = |message: String| SceneError::Mesh {
+            path: path.to_path_buf(),
+            message,
+        };
+        if !path.is_file() {
+            return Err(err("file does not exist".into()));
+        }
+        let ext = path
+            .extension()
+            .and_then(|e| e.to_str())
+            .unwrap_or("")
+            .to_ascii_lowercase();
+        let mut mesh = match ext.as_str() {
+            "obj" => load_obj(path).map_err(err)?,
+            "gltf" | "glb" => load_gltf(path).map_err(err)?,
+            other => {
+                return Err(err(format!(
+                    "unsupported extension `{other}` (use .obj, .gltf or .glb)"
+                )));
+            }
+        };
+        let factor = (unit.to_mm() * scale) as f32;
+        for v in &mut mesh.vertices {
+            *v *= factor;
+        }
+        mesh.validated().map_err(err)
+    }
+
+    /// Checks vertices are finite and indices in range, drops zero-area triangles, and fails
+    /// when none is left.
+    pub fn validated(mut self) -> Result<TriMesh, String> {
+        if let Some(k) = self.vertices.iter().position(|v| !v.is_finite()) {
+            return Err(format!("vertex {k} is not finite ({})", self.vertices[k]));
+        }
+        let n = self.vertices.len() as u32;
+        if let Some(t) = self.triangles.iter().find(|t| t.iter().any(|&i| i >= n)) {
+            return Err(format!("triangle {t:?} indexes past the {n} vertices"));
+        }
+        let vertices = &self.vertices;
+        self.triangles.retain(|t| {
+            let [a, b, c] = t.map(|i| vertices[i as usize]);
+            (b - a).cross(c - a).length() > 1e-12
+        });
+        if self.triangles.is_empty() {
+            return Err("no triangle with non-zero area".into());
+        }
+        Ok(self)
+    }
+
+    /// Moves the mesh so its lowest vertex is at z = 0 and its bounding box is centred in x, y.
+    pub fn anchored_at_tip(mut self) -> TriMesh {
+        let lo = self.vertices.iter().fold(Vec3::INFINITY, |m, v| m.min(*v));
+        let hi = self
+            .vertices
+            .iter()
+            .fold(Vec3::NEG_INFINITY, |m, v| m.max(*v));
+        let shift = Vec3::new(-(lo.x + hi.x) / 2.0, -(lo.y + hi.y) / 2.0, -lo.z);
+        for v in &mut self.vertices {
+            *v += shift;
+        }
+        self
+    }
+}
+
+fn load_obj(path: &Path) -> Result<TriMesh, String> {
+    let options = tobj::LoadOptions {
+        triangulate: true,
+        single_index: true,
+        ..Default::default()
+    };
+    let (models, _) = tobj::load_obj(path, &options).map_err(|e| format!("OBJ: {e}"))?;
+    let mut mesh = TriMesh {
+        vertices: Vec::new(),
+        triangles: Vec::new(),
+    };
+    for model in models {
+        let base = mesh.vertices.len() as u32;
+        let p = &model.mesh.positions;
+        mesh.vertices
+            .extend(p.chunks_exact(3).map(|c| Vec3::new(c[0], c[1], c[2])));
+        mesh.triangles.extend(
+            model
+                .mesh
+                .indices
+                .chunks_exact(3)
+                .map(|t| [base + t[0], base + t[1], base + t[2]]),
+        );
+    }
+    Ok(mesh)
+}
+
+fn load_gltf(path: &Path) -> Result<TriMesh, String> {
+    let gltf = gltf::Gltf::open(path).map_err(|e| format!("glTF: {e}"))?;
+    let buffers = gltf::import_buffers(&gltf.document, path.parent(), gltf.blob.clone())
+        .map_err(|e| format!("glTF buffers: {e}"))?;
+    let mut mesh = TriMesh {
+        vertices: Vec::new(),
+        triangles: Vec::new(),
+    };
+    let scene = gltf
+        .document
+        .default_scene()
+        .or_else(|| gltf.document.scenes().next())
+        .ok_or("glTF: no scene")?;
+    let mut stack: Vec<(gltf::Node, Mat4)> = scene.nodes().map(|n| (n, Mat4::IDENTITY)).collect();
+    while let Some((node, parent)) = stack.pop() {
+        let world = parent * Mat4::from_cols_array_2d(&node.transform().matrix());
+        if let Some(m) = node.mesh() {
+            for prim in m.primitives() {
+                if prim.mode() != gltf::mesh::Mode::Triangles {
+                    return Err(format!(
+                        "glTF: primitive mode {:?} (only triangles)",
+                        prim.mode()
+                    ));
+                }
+                let reader = prim.reader(|b| buffers.get(b.index()).map(|d| &d.0[..]));
+                let base = mesh.vertices.len() as u32;
+                let positions = reader
+                    .read_positions()
+                    .ok_or("glTF: primitive without positions")?;
+                mesh.vertices
+                    .extend(positions.map(|p| world.transform_point3(Vec3::from(p))));
+                let count = mesh.vertices.len() as u32 - base;
+                match reader.read_indices() {
+                    Some(ix) => {
+                        let ix: Vec<u32> = ix.into_u32().collect();
+                        mesh.triangles.extend(
+                            ix.chunks_exact(3)
+                                .map(|t| [base + t[0], base + t[1], base + t[2]]),
+                        );
+                    }
+                    None => mesh.triangles.extend(
+                        (0..count / 3).map(|k| [base + 3 * k, base + 3 * k + 1, base + 3 * k + 2]),
+                    ),
+                }
+            }
+        }
+        stack.extend(node.children().map(|c| (c, world)));
+    }
+    Ok(mesh)
+}
+
+/// An indenter ready for ray casting, in its local frame (tip at the origin, body towards +z).
+#[derive(Debug, Clone)]
+pub enum Indenter {
+    /// Sphere centred at (0, 0, R).
+    Sphere {
+        /// Radius (mm).
+        radius_mm: f64,
+    },
+    /// Flat punch: solid cylinder x² + y² ≤ R², 0 ≤ z ≤ H.
+    Cylinder {
+        /// Radius (mm).
+        radius_mm: f64,
+        /// Height (mm).
+        height_mm: f64,
+    },
+    /// Cone √(x² + y²) ≤ z tan α, 0 ≤ z ≤ H.
+    Cone {
+        /// Semi-angle α between axis and face (degrees).
+        half_angle_deg: f64,
+        /// Height (mm).
+        height_mm: f64,
+    },
+    /// Box |x| ≤ sx/2, |y| ≤ sy/2, 0 ≤ z ≤ sz.
+    Box {
+        /// Edge lengths (mm).
+        size_mm: [f64; 3],
+    },
+    /// A triangle mesh with its bounding volume hierarchy.
+    Mesh(Box<MeshIndenter>),
+}
+
+/// A triangle mesh with a BVH over its triangles (obvhs).
+#[derive(Clone)]
+pub struct MeshIndenter {
+    /// The mesh (mm).
+    pub mesh: TriMesh,
+    triangles: Vec<Triangle>,
+    bvh: obvhs::bvh2::Bvh2,
+}
+
+impl std::fmt::Debug for MeshIndenter {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("MeshIndenter")
+            .field("vertices", &self.mesh.vertices.len())
+            .field("triangles", &self.triangles.len())
+            .finish()
+    }
+}
+
+impl MeshIndenter {
+    /// Builds the BVH.
+    pub fn new(mesh: TriMesh) -> MeshIndenter {
+        let triangles: Vec<Triangle> = mesh
+            .triangles
+            .iter()
+            .map(|t| {
+                let [v0, v1, v2] = t.map(|i| Vec3A::from(mesh.vertices[i as usize]));
+                Triangle { v0, v1, v2 }
+            })
+            .collect();
+        let bvh = obvhs::bvh2::builder::build_bvh2_from_tris(
+            &triangles,
+            obvhs::BvhBuildParams::medium_build(),
+            &mut std::time::Duration::default(),
+        );
+        MeshIndenter {
+            mesh,
+            triangles,
+            bvh,
+        }
+    }
+}
+
+impl Indenter {
+    /// Radius of a ball about the local origin that contains the whole indenter (mm).
+    pub fn bounding_radius_mm(&self) -> f64 {
+        match self {
+            Indenter::Sphere { radius_mm } => 2.0 * radius_mm,
+            Indenter::Cylinder {
+                radius_mm,
+                height_mm,
+            } => radius_mm.hypot(*height_mm),
+            Indenter::Cone {
+                half_angle_deg,
+                height_mm,
+            } => height_mm / half_angle_deg.to_radians().cos(),
+            Indenter::Box { size_mm } => {
+                DVec3::new(size_mm[0] / 2.0, size_mm[1] / 2.0, size_mm[2]).length()
+            }
+            Indenter::Mesh(m) => m
+                .mesh
+                .vertices
+                .iter()
+                .map(|v| v.length() as f64)
+                .fold(0.0, f64::max),
+        }
+    }
+
+    /// Distance along the ray `origin + t·dir` (unit `dir`, local frame) to where it first
+    /// enters the indenter, or `None` when it misses.
+    pub fn ray_entry(&self, origin: DVec3, dir: DVec3) -> Option<f64> {
+        match self {
+            Indenter::Sphere { radius_mm } => {
+                let oc = origin - DVec3::new(0.0, 0.0, *radius_mm);
+                let b = oc.dot(dir);
+                let c = oc.length_squared() - radius_mm * radius_mm;
+                let disc = b * b - c;
+                (disc >= 0.0).then(|| -b - disc.sqrt())
+            }
+            Indenter::Cylinder {
+                radius_mm,
+                height_mm,
+            } => {
+                let radial = disc_interval(origin, dir, *radius_mm)?;
+                let axial = slab(origin.z, dir.z, 0.0, *height_mm)?;
+                entry(intersect(radial, axial)?)
+            }
+            Indenter::Box { size_mm } => {
+                let [sx, sy, sz] = *size_mm;
+                let i = slab(origin.x, dir.x, -sx / 2.0, sx / 2.0)?;
+                let i = intersect(i, slab(origin.y, dir.y, -sy / 2.0, sy / 2.0)?)?;
+                entry(intersect(i, slab(origin.z, dir.z, 0.0, sz)?)?)
+            }
+            Indenter::Cone {
+                half_angle_deg,
+                height_mm,
+            } => cone_entry(origin, dir, half_angle_deg.to_radians().tan(), *height_mm),
+            Indenter::Mesh(m) => {
+                let ray = Ray::new_inf(origin.as_vec3().into(), dir.as_vec3().into());
+                let mut hit = RayHit::none();
+                let found = m.bvh.ray_traverse(ray, &mut hit, |r, id| {
+                    m.triangles[m.bvh.primitive_indices[id] as usize].intersect(r)
+                });
+                found.then_some(hit.t as f64)
+            }
+        }
+    }
+}
+
+/// Parameter interval `[t0, t1]` of a ray.
+type Interval = (f64, f64);
+
+fn intersect(a: Interval, b: Interval) -> Option<Interval> {
+    let i = (a.0.max(b.0), a.1.min(b.1));
+    (i.0 <= i.1).then_some(i)
+}
+
+fn entry(i: Interval) -> Option<f64> {
+    (i.1 >= 0.0).then_some(i.0)
+}
+
+/// Where `lo ≤ o + t d ≤ hi` along one axis.
+fn slab(o: f64, d: f64, lo: f64, hi: f64) -> Option<Interval> {
+    if d.abs() < 1e-15 {
+        return (lo..=hi)
+            .contains(&o)
+            .then_some((f64::NEG_INFINITY, f64::INFINITY));
+    }
+    let (a, b) = ((lo - o) / d, (hi - o) / d);
+    Some((a.min(b), a.max(b)))
+}
+
+/// Where the ray is inside the infinite cylinder x² + y² ≤ r².
+fn disc_interval(o: DVec3, d: DVec3, r: f64) -> Option<Interval> {
+    let a = d.x * d.x + d.y * d.y;
+    let c = o.x * o.x + o.y * o.y - r * r;
+    if a < 1e-15 {
+        return (c <= 0.0).then_some((f64::NEG_INFINITY, f64::INFINITY));
+    }
+    let b = o.x * d.x + o.y * d.y;
+    let disc = b * b - a * c;
+    (disc >= 0.0).then(|| ((-b - disc.sqrt()) / a, (-b + disc.sqrt()) / a))
+}
+
+/// Entry into the solid cone x² + y² ≤ k² z², 0 ≤ z ≤ h, with k = tan α.
+fn cone_entry(o: DVec3, d: DVec3, k: f64, h: f64) -> Option<f64> {
+    let k2 = k * k;
+    let a = d.x * d.x + d.y * d.y - k2 * d.z * d.z;
+    let b = 2.0 * (o.x * d.x + o.y * d.y - k2 * o.z * d.z);
+    let c = o.x * o.x + o.y * o.y - k2 * o.z * o.z;
+    let all = (f64::NEG_INFINITY, f64::INFINITY);
+    // Pieces of the double cone {a t² + b t + c ≤ 0}; the z ≥ 0 slab keeps the upper nappe.
+    let pieces: Vec<Interval> = if a.abs() < 1e-12 {
+        if b.abs() < 1e-15 {
+            if c <= 0.0 { vec![all] } else { vec![] }
+        } else if b > 0.0 {
+            vec![(f64::NEG_INFINITY, -c / b)]
+        } else {
+            vec![(-c / b, f64::INFINITY)]
+        }
+    } else {
+        let disc = b * b - 4.0 * a * c;
+        if disc < 0.0 {
+            if a < 0.0 { vec![all] } else { vec![] }
+        } else {
+            let (r1, r2) = (
+                (-b - disc.sqrt()) / (2.0 * a),
+                (-b + disc.sqrt()) / (2.0 * a),
+            );
+            let (t1, t2) = (r1.min(r2), r1.max(r2));
+            if a > 0.0 {
+                vec![(t1, t2)]
+            } else {
+                vec![(f64::NEG_INFINITY, t1), (t2, f64::INFINITY)]
+            }
+        }
+    };
+    let axial = slab(o.z, d.z, 0.0, h)?;
+    pieces
+        .into_iter()
+        .filter_map(|p| intersect(p, axial))
+        .filter(|i| {
+            let mid = if i.0.is_finite() && i.1.is_finite() {
+                (i.0 + i.1) / 2.0
+            } else if i.0.is_finite() {
+                i.0
+            } else {
+                i.1
+            };
+            o.z + mid * d.z >= -1e-9
+        })
+        .filter_map(entry)
+        .min_by(|x, y| x.total_cmp(y))
+}
+
+impl IndenterSpec {
+    /// Resolves the spec into a ray-castable indenter; `scene` is the scene file (errors name it,
+    /// mesh paths are relative to it).
+    pub fn build(&self, scene: &Path) -> Result<Indenter, SceneError> {
+        let positive = |field: &str, v: Option<f64>| -> Result<f64, SceneError> {
+            match v {
+                None => Err(SceneError::invalid(
+                    scene,
+                    format!("indenter.{field}"),
+                    format!("required for shape {:?}", self.shape),
+                )),
+                Some(x) if !(x.is_finite() && x > 0.0) => Err(SceneError::invalid(
+                    scene,
+                    format!("indenter.{field}"),
+                    format!("must be > 0, got {x}"),
+                )),
+                Some(x) => Ok(x),
+            }
+        };
+        let height = || positive("height_mm", Some(self.height_mm.unwrap_or(10.0)));
+        let unused = |allowed: &[&str]| -> Result<(), SceneError> {
+            let given = [
+                ("radius_mm", self.radius_mm.is_some()),
+                ("height_mm", self.height_mm.is_some()),
+                ("half_angle_deg", self.half_angle_deg.is_some()),
+                ("size_mm", self.size_mm.is_some()),
+                ("mesh", self.mesh.is_some()),
+                ("scale", self.scale.is_some()),
+                ("units", self.units.is_some()),
+                ("anchor", self.anchor.is_some()),
+            ];
+            match given.iter().find(|(k, g)| *g && !allowed.contains(k)) {
+                Some((k, _)) => Err(SceneError::invalid(
+                    scene,
+                    format!("indenter.{k}"),
+                    format!("does not apply to shape {:?}", self.shape),
+                )),
+                None => Ok(()),
+            }
+        };
+        Ok(match self.shape {
+            ShapeKind::Sphere => {
+                unused(&["radius_mm"])?;
+                Indenter::Sphere {
+                    radius_mm: positive("radius_mm", self.radius_mm)?,
+                }
+            }
+            ShapeKind::Cylinder => {
+                unused(&["radius_mm", "height_mm"])?;
+                Indenter::Cylinder {
+                    radius_mm: positive("radius_mm", self.radius_mm)?,
+                    height_mm: height()?,
+                }
+            }
+            ShapeKind::Cone => {
+                unused(&["half_angle_deg", "height_mm"])?;
+                let alpha = positive("half_angle_deg", self.half_angle_deg)?;
+                if alpha >= 90.0 {
+                    return Err(SceneError::invalid(
+                        scene,
+                        "indenter.half_angle_deg",
+                        format!("must be below 90, got {alpha}"),
+                    ));
+                }
+                Indenter::Cone {
+                    half_angle_deg: alpha,
+                    height_mm: height()?,
+                }
+            }
+            ShapeKind::Box => {
+                unused(&["size_mm"])?;
+                let s = self.size_mm.ok_or_else(|| {
+                    SceneError::invalid(scene, "indenter.size_mm", "required for shape Box")
+                })?;
+                for v in s {
+                    positive("size_mm", Some(v))?;
+                }
+                Indenter::Box { size_mm: s }
+            }
+            ShapeKind::Mesh => {
+                unused(&["mesh", "scale", "units", "anchor"])?;
+                let rel = self.mesh.as_ref().ok_or_else(|| {
+                    SceneError::invalid(scene, "indenter.mesh", "required for shape Mesh")
+                })?;
+                let path = scene.parent().unwrap_or(Path::new(".")).join(rel);
+                let scale = positive("scale", Some(self.scale.unwrap_or(1.0)))?;
+                let mesh = TriMesh::load(&path, self.units.unwrap_or_default(), scale)?;
+                let mesh = match self.anchor.unwrap_or_default() {
+                    Anchor::Tip => mesh.anchored_at_tip(),
+                    Anchor::Origin => mesh,
+                };
+                Indenter::Mesh(Box::new(MeshIndenter::new(mesh)))
+            }
+        })
+    }
+}

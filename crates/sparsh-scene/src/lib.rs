@@ -1,0 +1,367 @@
+//! Scene files for the sparsh tactile simulator: the sensor, the gel, the indenter and its
+//! trajectory, the contact solver and what to write — parsed from TOML (unknown keys rejected),
+//! checked, and resolved into ready-to-use parts (sensor preset with overrides, ray-castable
+//! indenter, frame targets). The format is documented in `scenes/README.md`.
+//!
+//! Units: millimetres, seconds, degrees, newtons, kilopascals. Frame: see [`grid`].
+#![warn(missing_docs)]
+
+mod error;
+mod gap;
+pub mod grid;
+mod indenter;
+mod sensor;
+mod trajectory;
+
+use std::path::{Path, PathBuf};
+
+use serde::Deserialize;
+
+pub use error::SceneError;
+pub use gap::GapField;
+pub use grid::Grid;
+pub use indenter::{Anchor, Indenter, IndenterSpec, LengthUnit, MeshIndenter, ShapeKind, TriMesh};
+pub use sensor::{Light, PRESETS, SensorConfig};
+pub use trajectory::{FrameTarget, Keyframe, Pose, sample};
+
+/// The gel's elastic and frictional properties (`[gel]`).
+#[derive(Debug, Clone, Copy, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Gel {
+    /// Young's modulus E (kPa).
+    #[serde(default = "Gel::default_modulus")]
+    pub youngs_modulus_kpa: f64,
+    /// Poisson ratio ν, in (−1, 0.5].
+    #[serde(default = "Gel::default_poisson")]
+    pub poisson_ratio: f64,
+    /// Thickness of the elastomer over its rigid window (mm).
+    #[serde(default = "Gel::default_thickness")]
+    pub thickness_mm: f64,
+    /// Coulomb friction coefficient μ between gel and indenter.
+    #[serde(default = "Gel::default_friction")]
+    pub friction: f64,
+}
+
+impl Default for Gel {
+    fn default() -> Self {
+        Gel {
+            youngs_modulus_kpa: Gel::default_modulus(),
+            poisson_ratio: Gel::default_poisson(),
+            thickness_mm: Gel::default_thickness(),
+            friction: Gel::default_friction(),
+        }
+    }
+}
+
+impl Gel {
+    fn default_modulus() -> f64 {
+        300.0
+    }
+    fn default_poisson() -> f64 {
+        0.48
+    }
+    fn default_thickness() -> f64 {
+        3.0
+    }
+    fn default_friction() -> f64 {
+        1.0
+    }
+
+    /// Plane-strain modulus E* = E/(1 − ν²) of the gel against a rigid indenter (kPa).
+    pub fn effective_modulus_kpa(&self) -> f64 {
+        self.youngs_modulus_kpa / (1.0 - self.poisson_ratio * self.poisson_ratio)
+    }
+
+    fn validate(&self, path: &Path) -> Result<(), SceneError> {
+        let bad = |field: &str, msg: String| Err(SceneError::invalid(path, field, msg));
+        if !(self.youngs_modulus_kpa.is_finite() && self.youngs_modulus_kpa > 0.0) {
+            return bad(
+                "gel.youngs_modulus_kpa",
+                format!("must be > 0, got {}", self.youngs_modulus_kpa),
+            );
+        }
+        if !(self.poisson_ratio > -1.0 && self.poisson_ratio <= 0.5) {
+            return bad(
+                "gel.poisson_ratio",
+                format!("must be in (-1, 0.5], got {}", self.poisson_ratio),
+            );
+        }
+        if !(self.thickness_mm.is_finite() && self.thickness_mm > 0.0) {
+            return bad(
+                "gel.thickness_mm",
+                format!("must be > 0, got {}", self.thickness_mm),
+            );
+        }
+        if !(self.friction.is_finite() && self.friction >= 0.0) {
+            return bad(
+                "gel.friction",
+                format!("must be ≥ 0, got {}", self.friction),
+            );
+        }
+        Ok(())
+    }
+}
+
+/// Contact solver rung (`solver = "..."`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum SolverKind {
+    /// Clipped penetration smoothed by a Gaussian pyramid; Winkler pressure; no tangential
+    /// tractions.
+    #[default]
+    Geometric,
+}
+
+/// A ground-truth field channel.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum FieldName {
+    /// Pressure (kPa).
+    P,
+    /// Shear traction along x (kPa).
+    Qx,
+    /// Shear traction along y (kPa).
+    Qy,
+    /// Surface displacement along x (mm).
+    Ux,
+    /// Surface displacement along y (mm).
+    Uy,
+    /// Surface displacement along z (mm; negative = pressed towards the camera).
+    Uz,
+    /// Contact mask (1 in contact).
+    Contact,
+    /// Slip mask (1 where the contact slips).
+    Slip,
+}
+
+impl FieldName {
+    /// Every field, in the order they are written.
+    pub const ALL: [FieldName; 8] = [
+        FieldName::P,
+        FieldName::Qx,
+        FieldName::Qy,
+        FieldName::Ux,
+        FieldName::Uy,
+        FieldName::Uz,
+        FieldName::Contact,
+        FieldName::Slip,
+    ];
+
+    /// Channel name in the EXR file.
+    pub fn channel(self) -> &'static str {
+        match self {
+            FieldName::P => "p",
+            FieldName::Qx => "qx",
+            FieldName::Qy => "qy",
+            FieldName::Ux => "ux",
+            FieldName::Uy => "uy",
+            FieldName::Uz => "uz",
+            FieldName::Contact => "contact",
+            FieldName::Slip => "slip",
+        }
+    }
+}
+
+/// Storage precision of field channels.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum Precision {
+    /// 32-bit float.
+    #[default]
+    F32,
+    /// 16-bit float.
+    F16,
+}
+
+/// What a dataset keeps (`[output]`).
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct OutputSpec {
+    /// Write PNG frames.
+    #[serde(default = "yes")]
+    pub frames: bool,
+    /// Field channels to write; empty writes no EXR files.
+    #[serde(default = "all_fields")]
+    pub fields: Vec<FieldName>,
+    /// Field precision.
+    #[serde(default)]
+    pub field_precision: Precision,
+}
+
+impl Default for OutputSpec {
+    fn default() -> Self {
+        OutputSpec {
+            frames: true,
+            fields: all_fields(),
+            field_precision: Precision::F32,
+        }
+    }
+}
+
+fn yes() -> bool {
+    true
+}
+
+fn all_fields() -> Vec<FieldName> {
+    FieldName::ALL.to_vec()
+}
+
+/// `[sensor]`: a preset and optional overrides.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct SensorSection {
+    preset: String,
+    width_px: Option<usize>,
+    height_px: Option<usize>,
+    mm_per_px: Option<f64>,
+    fps: Option<f64>,
+    lights: Option<Vec<Light>>,
+    background: Option<PathBuf>,
+}
+
+/// The scene file as written.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct SceneFile {
+    #[serde(default)]
+    seed: u64,
+    #[serde(default)]
+    solver: SolverKind,
+    sensor: SensorSection,
+    #[serde(default)]
+    gel: Gel,
+    indenter: IndenterSpec,
+    trajectory: Vec<Keyframe>,
+    #[serde(default)]
+    output: OutputSpec,
+}
+
+/// A checked scene, ready to simulate.
+#[derive(Debug, Clone)]
+pub struct Scene {
+    /// The scene file.
+    pub path: PathBuf,
+    /// Its text, as read (datasets keep a copy).
+    pub source: String,
+    /// Seed of every random choice.
+    pub seed: u64,
+    /// Contact solver rung.
+    pub solver: SolverKind,
+    /// Sensor with overrides applied.
+    pub sensor: SensorConfig,
+    /// Gel material.
+    pub gel: Gel,
+    /// Indenter spec as written.
+    pub indenter_spec: IndenterSpec,
+    /// Ray-castable indenter.
+    pub indenter: Indenter,
+    /// Keyframes, sorted by time.
+    pub trajectory: Vec<Keyframe>,
+    /// What to write.
+    pub output: OutputSpec,
+}
+
+impl Scene {
+    /// Reads, parses and checks a scene file; loads its mesh and background paths relative to it.
+    pub fn load(path: &Path) -> Result<Scene, SceneError> {
+        let source = std::fs::read_to_string(path).map_err(|source| SceneError::Io {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        Scene::parse(path, source)
+    }
+
+    /// Parses and checks scene text; `path` names it in errors and anchors relative paths.
+    pub fn parse(path: &Path, source: String) -> Result<Scene, SceneError> {
+        let file: SceneFile =
+            toml::from_str(&source).map_err(|e| SceneError::from_toml(path, &source, e))?;
+        let dir = path.parent().unwrap_or(Path::new("."));
+        let s = file.sensor;
+        let mut sensor = SensorConfig::preset(&s.preset).ok_or_else(|| {
+            let names: Vec<&str> = PRESETS.iter().map(|(n, _)| *n).collect();
+            SceneError::invalid(
+                path,
+                "sensor.preset",
+                format!(
+                    "unknown preset `{}` (one of {})",
+                    s.preset,
+                    names.join(", ")
+                ),
+            )
+        })?;
+        sensor.width_px = s.width_px.unwrap_or(sensor.width_px);
+        sensor.height_px = s.height_px.unwrap_or(sensor.height_px);
+        sensor.mm_per_px = s.mm_per_px.unwrap_or(sensor.mm_per_px);
+        sensor.fps = s.fps.unwrap_or(sensor.fps);
+        sensor.lights = s.lights.unwrap_or(sensor.lights);
+        sensor.background = s.background.map(|b| dir.join(b));
+        sensor.validate(path)?;
+        file.gel.validate(path)?;
+        let trajectory = file.trajectory;
+        if trajectory.is_empty() {
+            return Err(SceneError::invalid(
+                path,
+                "trajectory",
+                "needs at least one [[trajectory]] keyframe",
+            ));
+        }
+        for (k, key) in trajectory.iter().enumerate() {
+            let finite = key
+                .position_mm
+                .iter()
+                .chain(&key.rotation_deg)
+                .chain(&[key.time_s])
+                .all(|v| v.is_finite());
+            if !finite {
+                return Err(SceneError::invalid(
+                    path,
+                    format!("trajectory[{k}]"),
+                    "time, position and rotation must be finite",
+                ));
+            }
+            if k > 0 && key.time_s <= trajectory[k - 1].time_s {
+                return Err(SceneError::invalid(
+                    path,
+                    format!("trajectory[{k}].time_s"),
+                    format!(
+                        "times must increase, got {} after {}",
+                        key.time_s,
+                        trajectory[k - 1].time_s
+                    ),
+                ));
+            }
+            if let Some(f) = key.normal_force_n
+                && !(f.is_finite() && f >= 0.0)
+            {
+                return Err(SceneError::invalid(
+                    path,
+                    format!("trajectory[{k}].normal_force_n"),
+                    format!("must be ≥ 0, got {f}"),
+                ));
+            }
+        }
+        let indenter = file.indenter.build(path)?;
+        Ok(Scene {
+            path: path.to_path_buf(),
+            source,
+            seed: file.seed,
+            solver: file.solver,
+            sensor,
+            gel: file.gel,
+            indenter_spec: file.indenter,
+            indenter,
+            trajectory,
+            output: file.output,
+        })
+    }
+
+    /// The frames this scene renders, at the sensor's frame rate.
+    pub fn frames(&self) -> Vec<FrameTarget> {
+        sample(&self.trajectory, self.sensor.fps)
+    }
+
+    /// The gel grid (one cell per sensor pixel).
+    pub fn grid(&self) -> Grid {
+        self.sensor.grid()
+    }
+}
