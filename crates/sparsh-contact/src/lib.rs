@@ -7,10 +7,16 @@
 //! N (1 kPa · 1 mm² = 1 mN).
 #![warn(missing_docs)]
 
+mod bem;
+mod fft;
 mod geometric;
+mod kernels;
+pub mod reference;
+pub mod validation;
 
-use sparsh_scene::{GapField, Gel, Grid, SolverKind};
+use sparsh_scene::{GapField, Gel, Grid, Pose, SolverKind};
 
+pub use bem::{Bem, BemOptions};
 pub use geometric::Geometric;
 
 /// How the normal problem is driven in a frame.
@@ -178,5 +184,27 @@ pub trait ContactSolver: Send {
 pub fn solver_for(kind: SolverKind, gel: &Gel, grid: Grid) -> Box<dyn ContactSolver> {
     match kind {
         SolverKind::Geometric => Box::new(Geometric::new(*gel, grid)),
+        SolverKind::Halfspace => Box::new(Bem::halfspace(*gel, grid)),
+        SolverKind::Layered => Box::new(Bem::layered(*gel, grid)),
     }
+}
+
+/// Rigid tangential displacement (mm, [dx, dy] per cell) of the indenter's surface point above
+/// each cell between two poses: the point at height `gap` (0 where nothing is above) is carried
+/// from `previous` to `current` as a rigid body. This is [`ContactInput::rigid_shift_mm`].
+pub fn rigid_shift_mm(previous: &Pose, current: &Pose, gap: &GapField) -> Vec<[f64; 2]> {
+    let grid = gap.grid;
+    (0..grid.len())
+        .map(|k| {
+            let (i, j) = (k % grid.nx, k / grid.nx);
+            let z = if gap.gap_mm[k].is_finite() {
+                gap.gap_mm[k]
+            } else {
+                0.0
+            };
+            let point = glam::DVec3::new(grid.x_mm(i), grid.y_mm(j), z);
+            let moved = previous.apply(current.inverse_apply(point));
+            [point.x - moved.x, point.y - moved.y]
+        })
+        .collect()
 }

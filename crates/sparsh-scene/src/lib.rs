@@ -110,6 +110,13 @@ pub enum SolverKind {
     /// tractions.
     #[default]
     Geometric,
+    /// Elastic half-space boundary elements: Love's (Boussinesq) and Cerruti influence
+    /// coefficients of uniform tractions on the cells, DC-FFT convolution, Polonsky–Keer normal
+    /// contact and incremental Coulomb partial slip.
+    Halfspace,
+    /// As `halfspace`, with the normal compliance of a gel layer of `thickness_mm` bonded to its
+    /// rigid window (Carbone & Mangialardi 2008, eq. A.30).
+    Layered,
 }
 
 /// A ground-truth field channel.

@@ -1,0 +1,134 @@
+//! Analytic contact solutions, the references of the tests and of `sparsh validate`.
+//!
+//! Rigid indenters on an elastic body with E* = E/(1 − ν²), G = E/(2(1 + ν)); K. L. Johnson,
+//! *Contact Mechanics* (1985), unless noted. Units: mm, kPa, N (1 kPa · mm² = 1 mN).
+
+use std::f64::consts::PI;
+
+/// Hertz: rigid sphere (paraboloid) of radius R on a half-space (Johnson §4.2).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Hertz {
+    /// Indenter radius R (mm).
+    pub radius_mm: f64,
+    /// Plane-strain modulus E* (kPa).
+    pub effective_modulus_kpa: f64,
+}
+
+impl Hertz {
+    /// Normal load P = (4/3) E* R^(1/2) δ^(3/2) (N) at approach δ (mm).
+    pub fn force_n(&self, approach_mm: f64) -> f64 {
+        4.0 / 3.0
+            * self.effective_modulus_kpa
+            * self.radius_mm.sqrt()
+            * approach_mm.powf(1.5)
+            * 1e-3
+    }
+
+    /// Contact radius a = (3PR/(4E*))^(1/3) (mm) at load P (N).
+    pub fn contact_radius_mm(&self, force_n: f64) -> f64 {
+        (3.0 * force_n * 1e3 * self.radius_mm / (4.0 * self.effective_modulus_kpa)).cbrt()
+    }
+
+    /// Approach δ = a²/R (mm) at load P (N).
+    pub fn approach_mm(&self, force_n: f64) -> f64 {
+        self.contact_radius_mm(force_n).powi(2) / self.radius_mm
+    }
+
+    /// Peak pressure p₀ = 3P/(2πa²) (kPa) at load P (N).
+    pub fn peak_pressure_kpa(&self, force_n: f64) -> f64 {
+        3.0 * force_n * 1e3 / (2.0 * PI * self.contact_radius_mm(force_n).powi(2))
+    }
+}
+
+/// Flat cylindrical punch of radius a pressed δ into a half-space: P = 2aE*δ (N; Boussinesq,
+/// Johnson §3.8).
+pub fn flat_punch_force_n(radius_mm: f64, depth_mm: f64, effective_modulus_kpa: f64) -> f64 {
+    2.0 * radius_mm * effective_modulus_kpa * depth_mm * 1e-3
+}
+
+/// Rigid cone of semi-angle α (axis to face) pressed δ into a half-space (Sneddon 1965; Johnson
+/// §5.6): contact radius a = (2/π) δ tan α (mm).
+pub fn cone_contact_radius_mm(depth_mm: f64, half_angle_rad: f64) -> f64 {
+    2.0 / PI * depth_mm * half_angle_rad.tan()
+}
+
+/// Rigid cone: P = (2/π) E* δ² tan α (N).
+pub fn cone_force_n(depth_mm: f64, half_angle_rad: f64, effective_modulus_kpa: f64) -> f64 {
+    2.0 / PI * effective_modulus_kpa * depth_mm * depth_mm * half_angle_rad.tan() * 1e-3
+}
+
+/// Cattaneo–Mindlin: a sphere under constant normal load P, then a monotonic tangential load Q <
+/// μP (Johnson §7.2, Goodman's approximation: no normal–tangential coupling).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CattaneoMindlin {
+    /// Hertz contact radius a (mm).
+    pub contact_radius_mm: f64,
+    /// Normal load P (N).
+    pub normal_force_n: f64,
+    /// Friction coefficient μ.
+    pub friction: f64,
+    /// Shear modulus G (kPa).
+    pub shear_modulus_kpa: f64,
+    /// Poisson ratio ν.
+    pub poisson_ratio: f64,
+}
+
+impl CattaneoMindlin {
+    /// Stick radius c = a (1 − Q/(μP))^(1/3) (mm), Johnson eq. 7.41.
+    pub fn stick_radius_mm(&self, q_over_mu_p: f64) -> f64 {
+        self.contact_radius_mm * (1.0 - q_over_mu_p).cbrt()
+    }
+
+    /// Rigid tangential shift δ_t = 3μP(2 − ν)/(16Ga) · [1 − (1 − Q/(μP))^(2/3)] (mm), Johnson
+    /// eq. 7.42.
+    pub fn shift_mm(&self, q_over_mu_p: f64) -> f64 {
+        3.0 * self.friction * self.normal_force_n * 1e3 * (2.0 - self.poisson_ratio)
+            / (16.0 * self.shear_modulus_kpa * self.contact_radius_mm)
+            * (1.0 - (1.0 - q_over_mu_p).powf(2.0 / 3.0))
+    }
+}
+
+/// Bottom-effect correction for a paraboloid on an incompressible layer bonded to a rigid base,
+/// F/F_Hertz = 1 + 1.133χ + 1.497χ² + 1.469χ³ + 0.755χ⁴ with χ = √(Rδ)/h (Garcia & Garcia,
+/// Biophys. J. 114, 2018).
+pub fn garcia_bottom_effect(chi: f64) -> f64 {
+    1.0 + chi * (1.133 + chi * (1.497 + chi * (1.469 + chi * 0.755)))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn hertz_is_self_consistent() {
+        let h = Hertz {
+            radius_mm: 5.0,
+            effective_modulus_kpa: 400.0,
+        };
+        let delta = 0.07;
+        let f = h.force_n(delta);
+        assert!((h.approach_mm(f) - delta).abs() < 1e-12);
+        // Stiffness dP/dδ = 2aE*.
+        let e = 1e-7;
+        let stiffness = (h.force_n(delta + e) - h.force_n(delta - e)) / (2.0 * e);
+        let expected = 2.0 * h.contact_radius_mm(f) * 400.0 * 1e-3;
+        assert!((stiffness - expected).abs() < 1e-6 * expected);
+    }
+
+    #[test]
+    fn mindlin_initial_stiffness() {
+        // dQ/dδ_t at Q = 0 is 8Ga/(2 − ν) (Johnson eq. 7.43).
+        let cm = CattaneoMindlin {
+            contact_radius_mm: 1.0,
+            normal_force_n: 0.05,
+            friction: 0.8,
+            shear_modulus_kpa: 100.0,
+            poisson_ratio: 0.5,
+        };
+        let r = 1e-6;
+        let q = r * 0.8 * 0.05;
+        let stiffness = q / cm.shift_mm(r);
+        let expected = 8.0 * 100.0 * 1.0 / 1.5 * 1e-3;
+        assert!((stiffness - expected).abs() < 1e-5 * expected);
+    }
+}

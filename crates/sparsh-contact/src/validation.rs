@@ -1,0 +1,489 @@
+//! Validation cases: scene files of `scenes/validation/` solved by the boundary-element rungs
+//! and compared with the analytic solutions of [`crate::reference`].
+//!
+//! Each case is an ordinary scene file with one extra table, `[validation]`, removed before the
+//! scene is parsed:
+//!
+//! ```toml
+//! [validation]
+//! check = "hertz"            # hertz | hertz_load | flat_punch | cone | cattaneo_mindlin
+//!                            # | bonded_layer | layered_vs_halfspace
+//! tolerance = { force = 0.01, contact_radius = 0.02 }   # relative; others are reported only
+//! q_over_mu_p = 0.5          # cattaneo_mindlin: tangential load as a fraction of μP
+//! tangential_steps = 4       # cattaneo_mindlin: increments of the tangential shift
+//! refine = [2.0, 1.0, 0.5]   # optional convergence study: cell-size factors, coarse to fine
+//! ```
+//!
+//! The normal problem follows the scene's trajectory (its last frame is evaluated); a
+//! `cattaneo_mindlin` case then shifts the indenter along +x by Mindlin's δ_t for the requested
+//! Q/μP and compares the tangential force and the stick radius. Lengths measured from a solution:
+//! contact radius √(A/π) with A the area of the cells carrying pressure, stick radius likewise
+//! from the cells that stick.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use serde::{Deserialize, Serialize};
+use sparsh_scene::{GapField, Grid, Pose, Scene, SceneError, SolverKind};
+
+use crate::reference::{self, CattaneoMindlin, Hertz};
+use crate::{ContactError, ContactInput, Fields, NormalControl, rigid_shift_mm, solver_for};
+
+/// The analytic solution a case is compared with.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Check {
+    /// Sphere under displacement control: force, contact radius, peak pressure (Hertz).
+    Hertz,
+    /// Sphere under load control: approach, contact radius, peak pressure (Hertz).
+    HertzLoad,
+    /// Flat cylindrical punch at a given depth: force (Boussinesq).
+    FlatPunch,
+    /// Cone at a given depth: force and contact radius (Sneddon).
+    Cone,
+    /// Sphere, then a tangential shift: tangential force and stick radius (Cattaneo–Mindlin).
+    CattaneoMindlin,
+    /// Sphere on an incompressible bonded layer: force (Garcia & Garcia 2018).
+    BondedLayer,
+    /// The layered rung on a layer much thicker than the contact against the half-space rung.
+    LayeredVsHalfspace,
+}
+
+/// The `[validation]` table.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct Spec {
+    check: Check,
+    #[serde(default)]
+    tolerance: BTreeMap<String, f64>,
+    q_over_mu_p: Option<f64>,
+    #[serde(default = "default_steps")]
+    tangential_steps: usize,
+    #[serde(default)]
+    refine: Vec<f64>,
+}
+
+fn default_steps() -> usize {
+    4
+}
+
+/// One row of the validation table.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct CaseResult {
+    /// Case name (the scene file's stem).
+    pub case: String,
+    /// Compared quantity, with its unit.
+    pub quantity: String,
+    /// Reference value.
+    pub analytic: f64,
+    /// Solver value.
+    pub simulated: f64,
+    /// (simulated − analytic)/analytic.
+    pub rel_error: f64,
+    /// Allowed |rel_error|; `None` for values that are reported only.
+    pub tolerance: Option<f64>,
+    /// Wall time of the case (ms).
+    pub ms: f64,
+}
+
+impl CaseResult {
+    /// Within tolerance (always true for reported-only rows).
+    pub fn passed(&self) -> bool {
+        self.tolerance.is_none_or(|t| self.rel_error.abs() <= t)
+    }
+}
+
+/// Errors of one quantity as the grid is refined.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Convergence {
+    /// Case name.
+    pub case: String,
+    /// Quantity.
+    pub quantity: String,
+    /// Cell sizes, coarse to fine (mm).
+    pub cell_mm: Vec<f64>,
+    /// Relative errors at those cell sizes.
+    pub rel_error: Vec<f64>,
+    /// Observed orders between consecutive grids, ln(e₁/e₂)/ln(h₁/h₂).
+    pub observed_order: Vec<f64>,
+}
+
+/// Everything `sparsh validate` prints.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Report {
+    /// Table rows.
+    pub rows: Vec<CaseResult>,
+    /// Grid-refinement studies.
+    pub convergence: Vec<Convergence>,
+}
+
+impl Report {
+    /// Every row within tolerance.
+    pub fn passed(&self) -> bool {
+        self.rows.iter().all(CaseResult::passed)
+    }
+}
+
+/// Why a validation run could not be completed.
+#[derive(Debug, thiserror::Error)]
+pub enum ValidationError {
+    /// Reading the case directory or a file failed.
+    #[error("{path}: {source}")]
+    Io {
+        /// Path.
+        path: PathBuf,
+        /// Cause.
+        source: std::io::Error,
+    },
+    /// A case file is not a valid scene or `[validation]` table.
+    #[error("{path}: {reason}")]
+    Spec {
+        /// Path.
+        path: PathBuf,
+        /// What is wrong.
+        reason: String,
+    },
+    /// The scene part failed to load.
+    #[error(transparent)]
+    Scene(#[from] SceneError),
+    /// A solver failed on a case.
+    #[error("{case}: {source}")]
+    Contact {
+        /// Case name.
+        case: String,
+        /// Cause.
+        source: ContactError,
+    },
+}
+
+/// Runs every `*.toml` case of `dir`, in file-name order.
+pub fn run_cases(dir: &Path) -> Result<Report, ValidationError> {
+    let io = |source| ValidationError::Io {
+        path: dir.to_path_buf(),
+        source,
+    };
+    let mut paths: Vec<PathBuf> = std::fs::read_dir(dir)
+        .map_err(io)?
+        .map(|e| e.map(|e| e.path()))
+        .collect::<Result<_, _>>()
+        .map_err(io)?;
+    paths.retain(|p| p.extension().is_some_and(|e| e == "toml"));
+    paths.sort();
+    let mut report = Report {
+        rows: Vec::new(),
+        convergence: Vec::new(),
+    };
+    for path in paths {
+        let case = run_case(&path)?;
+        report.rows.extend(case.rows);
+        report.convergence.extend(case.convergence);
+    }
+    Ok(report)
+}
+
+/// Runs one case file.
+pub fn run_case(path: &Path) -> Result<Report, ValidationError> {
+    let spec_err = |reason: String| ValidationError::Spec {
+        path: path.to_path_buf(),
+        reason,
+    };
+    let source = std::fs::read_to_string(path).map_err(|source| ValidationError::Io {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    let mut table: toml::Table = source.parse().map_err(|e| spec_err(format!("{e}")))?;
+    let spec_value = table
+        .remove("validation")
+        .ok_or_else(|| spec_err("missing [validation] table".into()))?;
+    let spec: Spec = spec_value
+        .try_into()
+        .map_err(|e| spec_err(format!("[validation]: {e}")))?;
+    let scene_text = toml::to_string(&table).map_err(|e| spec_err(format!("{e}")))?;
+    let scene = Scene::parse(path, scene_text)?;
+    let case = path
+        .file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let contact_err = |source| ValidationError::Contact {
+        case: case.clone(),
+        source,
+    };
+
+    let start = Instant::now();
+    let base = scene.grid();
+    let values = evaluate(&scene, &spec, base).map_err(contact_err)?;
+    let ms = start.elapsed().as_secs_f64() * 1e3;
+    let rows = values
+        .iter()
+        .map(|v| CaseResult {
+            case: case.clone(),
+            quantity: v.quantity.to_string(),
+            analytic: v.analytic,
+            simulated: v.simulated,
+            rel_error: v.rel_error(),
+            tolerance: spec
+                .tolerance
+                .get(v.quantity.split(' ').next().unwrap_or(""))
+                .copied(),
+            ms,
+        })
+        .collect();
+
+    let mut convergence = Vec::new();
+    if !spec.refine.is_empty() {
+        let mut studies: Vec<Convergence> = Vec::new();
+        for &factor in &spec.refine {
+            // Keep the box and the parity of the cell counts (odd counts keep a cell centred on
+            // the axis of an axisymmetric case).
+            let count = |n: usize| {
+                let m = (n as f64 / factor).round() as usize;
+                if n % 2 == 1 {
+                    m / 2 * 2 + 1
+                } else {
+                    m.next_multiple_of(2)
+                }
+            };
+            let grid = Grid {
+                nx: count(base.nx),
+                ny: count(base.ny),
+                cell_mm: base.cell_mm * factor,
+            };
+            let values = if factor == 1.0 {
+                values.clone()
+            } else {
+                evaluate(&scene, &spec, grid).map_err(contact_err)?
+            };
+            for v in values {
+                let study = match studies.iter_mut().find(|s| s.quantity == v.quantity) {
+                    Some(s) => s,
+                    None => {
+                        studies.push(Convergence {
+                            case: case.clone(),
+                            quantity: v.quantity.to_string(),
+                            cell_mm: Vec::new(),
+                            rel_error: Vec::new(),
+                            observed_order: Vec::new(),
+                        });
+                        studies.last_mut().expect("just pushed")
+                    }
+                };
+                study.cell_mm.push(grid.cell_mm);
+                study.rel_error.push(v.rel_error());
+            }
+        }
+        for s in &mut studies {
+            s.observed_order = s
+                .rel_error
+                .windows(2)
+                .zip(s.cell_mm.windows(2))
+                .map(|(e, h)| (e[0].abs() / e[1].abs()).ln() / (h[0] / h[1]).ln())
+                .collect();
+        }
+        convergence = studies;
+    }
+    Ok(Report { rows, convergence })
+}
+
+/// A compared quantity.
+#[derive(Debug, Clone, PartialEq)]
+struct Value {
+    quantity: &'static str,
+    analytic: f64,
+    simulated: f64,
+}
+
+impl Value {
+    fn rel_error(&self) -> f64 {
+        (self.simulated - self.analytic) / self.analytic
+    }
+}
+
+/// The outcome of a trajectory: the last frame's fields and its total approach (mm).
+struct Run {
+    fields: Fields,
+    approach_mm: f64,
+}
+
+/// Solves the scene's frames in order on `grid` with `kind`, then `extra` poses (tangential
+/// steps) at the last frame's normal control.
+fn run(scene: &Scene, kind: SolverKind, grid: Grid, extra: &[Pose]) -> Result<Run, ContactError> {
+    let mut solver = solver_for(kind, &scene.gel, grid);
+    let frames = scene.frames();
+    let mut steps: Vec<(Pose, Option<f64>)> =
+        frames.iter().map(|f| (f.pose, f.normal_force_n)).collect();
+    let last_force = steps.last().and_then(|s| s.1);
+    steps.extend(extra.iter().map(|p| (*p, last_force)));
+    let mut previous: Option<Pose> = None;
+    let mut last = None;
+    for (pose, force) in steps {
+        let gap = GapField::cast(&scene.indenter, &pose, grid);
+        let shift = match &previous {
+            Some(p) => rigid_shift_mm(p, &pose, &gap),
+            None => vec![[0.0, 0.0]; grid.len()],
+        };
+        let input = ContactInput {
+            gap: &gap,
+            normal: force.map_or(NormalControl::Approach, NormalControl::Force),
+            rigid_shift_mm: &shift,
+        };
+        let fields = solver.solve(&input)?;
+        let approach_mm = gap.max_penetration_mm() + fields.approach_offset_mm;
+        last = Some(Run {
+            fields,
+            approach_mm,
+        });
+        previous = Some(pose);
+    }
+    Ok(last.expect("a scene has at least one frame"))
+}
+
+fn contact_radius_mm(fields: &Fields) -> f64 {
+    (fields.contact_area_mm2() / std::f64::consts::PI).sqrt()
+}
+
+fn peak_pressure_kpa(fields: &Fields) -> f64 {
+    fields.pressure_kpa.iter().copied().fold(0.0, f64::max)
+}
+
+fn evaluate(scene: &Scene, spec: &Spec, grid: Grid) -> Result<Vec<Value>, ContactError> {
+    let gel = scene.gel;
+    let e_star = gel.effective_modulus_kpa();
+    let spec_indenter = &scene.indenter_spec;
+    let radius_mm = spec_indenter.radius_mm.unwrap_or(f64::NAN);
+    let hertz = Hertz {
+        radius_mm,
+        effective_modulus_kpa: e_star,
+    };
+    let v = |quantity, analytic, simulated| Value {
+        quantity,
+        analytic,
+        simulated,
+    };
+    let out = match spec.check {
+        Check::Hertz => {
+            let r = run(scene, scene.solver, grid, &[])?;
+            let force = hertz.force_n(r.approach_mm);
+            vec![
+                v("force (N)", force, r.fields.force_n[2]),
+                v(
+                    "contact_radius (mm)",
+                    hertz.contact_radius_mm(force),
+                    contact_radius_mm(&r.fields),
+                ),
+                v(
+                    "peak_pressure (kPa)",
+                    hertz.peak_pressure_kpa(force),
+                    peak_pressure_kpa(&r.fields),
+                ),
+            ]
+        }
+        Check::HertzLoad => {
+            let r = run(scene, scene.solver, grid, &[])?;
+            let force = r.fields.force_n[2];
+            vec![
+                v("approach (mm)", hertz.approach_mm(force), r.approach_mm),
+                v(
+                    "contact_radius (mm)",
+                    hertz.contact_radius_mm(force),
+                    contact_radius_mm(&r.fields),
+                ),
+                v(
+                    "peak_pressure (kPa)",
+                    hertz.peak_pressure_kpa(force),
+                    peak_pressure_kpa(&r.fields),
+                ),
+            ]
+        }
+        Check::FlatPunch => {
+            let r = run(scene, scene.solver, grid, &[])?;
+            vec![v(
+                "force (N)",
+                reference::flat_punch_force_n(radius_mm, r.approach_mm, e_star),
+                r.fields.force_n[2],
+            )]
+        }
+        Check::Cone => {
+            let alpha = spec_indenter
+                .half_angle_deg
+                .unwrap_or(f64::NAN)
+                .to_radians();
+            let r = run(scene, scene.solver, grid, &[])?;
+            vec![
+                v(
+                    "force (N)",
+                    reference::cone_force_n(r.approach_mm, alpha, e_star),
+                    r.fields.force_n[2],
+                ),
+                v(
+                    "contact_radius (mm)",
+                    reference::cone_contact_radius_mm(r.approach_mm, alpha),
+                    contact_radius_mm(&r.fields),
+                ),
+            ]
+        }
+        Check::CattaneoMindlin => {
+            let ratio = spec.q_over_mu_p.unwrap_or(f64::NAN);
+            let normal = run(scene, scene.solver, grid, &[])?;
+            let force = hertz.force_n(normal.approach_mm);
+            let cm = CattaneoMindlin {
+                contact_radius_mm: hertz.contact_radius_mm(force),
+                normal_force_n: force,
+                friction: gel.friction,
+                shear_modulus_kpa: gel.youngs_modulus_kpa / (2.0 * (1.0 + gel.poisson_ratio)),
+                poisson_ratio: gel.poisson_ratio,
+            };
+            let last = scene.frames().last().expect("frames").pose;
+            let shift = cm.shift_mm(ratio);
+            let steps = spec.tangential_steps.max(1);
+            let extra: Vec<Pose> = (1..=steps)
+                .map(|k| {
+                    let mut p = last;
+                    p.position_mm.x += shift * k as f64 / steps as f64;
+                    p
+                })
+                .collect();
+            let r = run(scene, scene.solver, grid, &extra)?;
+            let stick_cells = r
+                .fields
+                .contact
+                .iter()
+                .zip(&r.fields.slip)
+                .filter(|(c, s)| **c && !**s)
+                .count();
+            let stick_mm =
+                (stick_cells as f64 * grid.cell_area_mm2() / std::f64::consts::PI).sqrt();
+            vec![
+                v(
+                    "tangential_force (N)",
+                    ratio * gel.friction * force,
+                    r.fields.force_n[0],
+                ),
+                v("stick_radius (mm)", cm.stick_radius_mm(ratio), stick_mm),
+            ]
+        }
+        Check::BondedLayer => {
+            let r = run(scene, SolverKind::Layered, grid, &[])?;
+            let hertz_a = (radius_mm * r.approach_mm).sqrt();
+            let chi = hertz_a / gel.thickness_mm;
+            vec![
+                v(
+                    "force (N)",
+                    hertz.force_n(r.approach_mm) * reference::garcia_bottom_effect(chi),
+                    r.fields.force_n[2],
+                ),
+                v("contact_radius (mm)", hertz_a, contact_radius_mm(&r.fields)),
+            ]
+        }
+        Check::LayeredVsHalfspace => {
+            let half = run(scene, SolverKind::Halfspace, grid, &[])?;
+            let layer = run(scene, SolverKind::Layered, grid, &[])?;
+            vec![v(
+                "force (N)",
+                half.fields.force_n[2],
+                layer.fields.force_n[2],
+            )]
+        }
+    };
+    Ok(out)
+}
