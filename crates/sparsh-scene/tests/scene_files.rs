@@ -1,0 +1,278 @@
+//! Scene files: parsing, defaults, mesh formats, and one clear error per kind of bad input.
+
+use std::path::{Path, PathBuf};
+
+use sparsh_scene::{Indenter, Scene, SceneError};
+
+const BASE: &str = r#"
+seed = 3
+[sensor]
+preset = "digit"
+width_px = 64
+height_px = 48
+[gel]
+youngs_modulus_kpa = 200.0
+[indenter]
+shape = "sphere"
+radius_mm = 5.0
+[[trajectory]]
+time_s = 0.0
+position_mm = [0.0, 0.0, 0.5]
+[[trajectory]]
+time_s = 2.0
+position_mm = [0.0, 0.0, -1.0]
+"#;
+
+fn parse(text: &str) -> Result<Scene, SceneError> {
+    Scene::parse(Path::new("scenes/test.toml"), text.to_string())
+}
+
+fn error_of(text: &str) -> String {
+    let err = parse(text).expect_err("scene should be rejected");
+    let line = err.to_string();
+    assert!(!line.contains('\n'), "error spans lines: {line}");
+    assert!(
+        line.starts_with("scenes/test.toml"),
+        "error must name the file: {line}"
+    );
+    line
+}
+
+#[test]
+fn quickstart_parses_with_preset_defaults() {
+    let scene =
+        Scene::load(&Path::new(env!("CARGO_MANIFEST_DIR")).join("../../scenes/quickstart.toml"))
+            .expect("quickstart scene loads");
+    assert_eq!(scene.sensor.name, "digit");
+    assert_eq!(scene.frames().len(), 120, "2 s at 60 fps");
+    assert!(matches!(scene.indenter, Indenter::Sphere { radius_mm } if radius_mm == 6.0));
+}
+
+#[test]
+fn overrides_and_defaults_apply() {
+    let scene = parse(BASE).unwrap();
+    assert_eq!((scene.sensor.width_px, scene.sensor.height_px), (64, 48));
+    assert_eq!(scene.sensor.mm_per_px, 0.0532, "preset value kept");
+    assert_eq!(scene.gel.youngs_modulus_kpa, 200.0);
+    assert_eq!(scene.gel.poisson_ratio, 0.48, "default");
+    assert_eq!(scene.output.fields.len(), 8);
+}
+
+#[test]
+fn keyframes_interpolate_linearly_at_the_frame_rate() {
+    let frames = parse(BASE).unwrap().frames();
+    assert_eq!(frames.len(), 120);
+    // Frame 60 is at t = 1 s, halfway between z = 0.5 and z = −1.
+    assert!((frames[60].time_s - 1.0).abs() < 1e-12);
+    assert!((frames[60].pose.position_mm.z + 0.25).abs() < 1e-12);
+}
+
+#[test]
+fn malformed_toml_gives_line_and_column() {
+    let text = BASE.replace("radius_mm = 5.0", "radius_mm = = 5.0");
+    let line = error_of(&text);
+    assert!(line.starts_with("scenes/test.toml:11:"), "{line}");
+}
+
+#[test]
+fn unknown_key_is_named() {
+    let text = BASE.replace("radius_mm = 5.0", "radius_mm = 5.0\nradios = 2");
+    let line = error_of(&text);
+    assert!(line.contains("radios"), "{line}");
+    assert!(line.starts_with("scenes/test.toml:12:"), "{line}");
+}
+
+#[test]
+fn out_of_range_materials_are_rejected() {
+    for (key, bad, field) in [
+        (
+            "youngs_modulus_kpa = 200.0",
+            "youngs_modulus_kpa = 0.0",
+            "gel.youngs_modulus_kpa",
+        ),
+        (
+            "youngs_modulus_kpa = 200.0",
+            "youngs_modulus_kpa = -5.0",
+            "gel.youngs_modulus_kpa",
+        ),
+        (
+            "youngs_modulus_kpa = 200.0",
+            "thickness_mm = 0.0",
+            "gel.thickness_mm",
+        ),
+        (
+            "youngs_modulus_kpa = 200.0",
+            "poisson_ratio = 0.51",
+            "gel.poisson_ratio",
+        ),
+        (
+            "youngs_modulus_kpa = 200.0",
+            "poisson_ratio = -1.0",
+            "gel.poisson_ratio",
+        ),
+    ] {
+        let line = error_of(&BASE.replace(key, bad));
+        assert!(line.contains(field), "{bad}: {line}");
+    }
+    let incompressible = BASE.replace("youngs_modulus_kpa = 200.0", "poisson_ratio = 0.5");
+    assert!(parse(&incompressible).is_ok(), "ν = 0.5 is allowed");
+}
+
+#[test]
+fn shape_keys_must_fit_the_shape() {
+    let line = error_of(&BASE.replace("radius_mm = 5.0", "half_angle_deg = 30.0"));
+    assert!(line.contains("indenter.half_angle_deg"), "{line}");
+    let line = error_of(&BASE.replace("shape = \"sphere\"", "shape = \"cone\""));
+    assert!(line.contains("indenter.radius_mm"), "{line}");
+}
+
+#[test]
+fn unknown_preset_lists_the_known_ones() {
+    let line = error_of(&BASE.replace("\"digit\"", "\"digits\""));
+    assert!(
+        line.contains("sensor.preset") && line.contains("gelsight_mini"),
+        "{line}"
+    );
+}
+
+#[test]
+fn trajectory_times_must_increase() {
+    let line = error_of(&BASE.replace("time_s = 2.0", "time_s = 0.0"));
+    assert!(line.contains("trajectory[1].time_s"), "{line}");
+}
+
+fn mesh_scene(dir: &Path, file: &str) -> (PathBuf, String) {
+    let text = BASE.replace(
+        "shape = \"sphere\"\nradius_mm = 5.0",
+        &format!("shape = \"mesh\"\nmesh = \"{file}\"\nunits = \"cm\""),
+    );
+    (dir.join("scene.toml"), text)
+}
+
+/// A unit tetrahedron (in the file's units) with its tip at z = 0.
+const TETRA: [[f32; 3]; 4] = [
+    [0.0, 0.0, 0.0],
+    [1.0, 0.0, 1.0],
+    [0.0, 1.0, 1.0],
+    [-1.0, -1.0, 1.0],
+];
+const TETRA_FACES: [[u32; 3]; 4] = [[0, 1, 2], [0, 2, 3], [0, 3, 1], [1, 3, 2]];
+
+fn mesh_extent_mm(scene: &Scene) -> f32 {
+    match &scene.indenter {
+        Indenter::Mesh(m) => m.mesh.vertices.iter().map(|v| v.z).fold(0.0, f32::max),
+        other => panic!("expected a mesh, got {other:?}"),
+    }
+}
+
+#[test]
+fn obj_mesh_loads_in_its_units() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut obj = String::new();
+    for v in TETRA {
+        obj += &format!("v {} {} {}\n", v[0], v[1], v[2]);
+    }
+    for f in TETRA_FACES {
+        obj += &format!("f {} {} {}\n", f[0] + 1, f[1] + 1, f[2] + 1);
+    }
+    std::fs::write(dir.path().join("tetra.obj"), obj).unwrap();
+    let (path, text) = mesh_scene(dir.path(), "tetra.obj");
+    let scene = Scene::parse(&path, text).expect("OBJ loads");
+    assert_eq!(mesh_extent_mm(&scene), 10.0, "1 cm tall");
+}
+
+/// Writes a binary glTF with one triangle mesh.
+fn write_glb(path: &Path, vertices: &[[f32; 3]], faces: &[[u32; 3]]) {
+    let mut bin: Vec<u8> = vertices
+        .iter()
+        .flatten()
+        .flat_map(|v| v.to_le_bytes())
+        .collect();
+    let vlen = bin.len();
+    bin.extend(faces.iter().flatten().flat_map(|i| i.to_le_bytes()));
+    let ilen = bin.len() - vlen;
+    let (lo, hi) = vertices
+        .iter()
+        .fold(([f32::MAX; 3], [f32::MIN; 3]), |(lo, hi), v| {
+            (
+                std::array::from_fn(|k| lo[k].min(v[k])),
+                std::array::from_fn(|k| hi[k].max(v[k])),
+            )
+        });
+    let json = format!(
+        r#"{{"asset":{{"version":"2.0"}},"scene":0,"scenes":[{{"nodes":[0]}}],"nodes":[{{"mesh":0}}],
+"meshes":[{{"primitives":[{{"attributes":{{"POSITION":0}},"indices":1}}]}}],
+"buffers":[{{"byteLength":{}}}],
+"bufferViews":[{{"buffer":0,"byteOffset":0,"byteLength":{vlen}}},{{"buffer":0,"byteOffset":{vlen},"byteLength":{ilen}}}],
+"accessors":[{{"bufferView":0,"componentType":5126,"count":{},"type":"VEC3","min":{:?},"max":{:?}}},
+{{"bufferView":1,"componentType":5125,"count":{},"type":"SCALAR"}}]}}"#,
+        bin.len(),
+        vertices.len(),
+        lo,
+        hi,
+        faces.len() * 3
+    );
+    let mut json = json.into_bytes();
+    while json.len() % 4 != 0 {
+        json.push(b' ');
+    }
+    while bin.len() % 4 != 0 {
+        bin.push(0);
+    }
+    let total = 12 + 8 + json.len() + 8 + bin.len();
+    let mut glb = Vec::new();
+    glb.extend(b"glTF");
+    glb.extend(2u32.to_le_bytes());
+    glb.extend((total as u32).to_le_bytes());
+    glb.extend((json.len() as u32).to_le_bytes());
+    glb.extend(b"JSON");
+    glb.extend(&json);
+    glb.extend((bin.len() as u32).to_le_bytes());
+    glb.extend(b"BIN\0");
+    glb.extend(&bin);
+    std::fs::write(path, glb).unwrap();
+}
+
+#[test]
+fn glb_mesh_loads_in_its_units() {
+    let dir = tempfile::tempdir().unwrap();
+    write_glb(&dir.path().join("tetra.glb"), &TETRA, &TETRA_FACES);
+    let (path, text) = mesh_scene(dir.path(), "tetra.glb");
+    let scene = Scene::parse(&path, text).expect("GLB loads");
+    assert_eq!(mesh_extent_mm(&scene), 10.0, "1 cm tall");
+}
+
+#[test]
+fn missing_mesh_file_is_named() {
+    let dir = tempfile::tempdir().unwrap();
+    let (path, text) = mesh_scene(dir.path(), "nowhere.obj");
+    let err = Scene::parse(&path, text).unwrap_err().to_string();
+    assert!(
+        err.contains("nowhere.obj") && err.contains("does not exist"),
+        "{err}"
+    );
+}
+
+#[test]
+fn mesh_with_nan_vertex_is_rejected() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut vertices = TETRA;
+    vertices[2][1] = f32::NAN;
+    write_glb(&dir.path().join("bad.glb"), &vertices, &TETRA_FACES);
+    let (path, text) = mesh_scene(dir.path(), "bad.glb");
+    let err = Scene::parse(&path, text).unwrap_err().to_string();
+    assert!(err.contains("bad.glb") && err.contains("vertex 2"), "{err}");
+}
+
+#[test]
+fn mesh_of_zero_area_triangles_is_rejected() {
+    let dir = tempfile::tempdir().unwrap();
+    let obj = "v 0 0 0\nv 1 0 0\nv 2 0 0\nf 1 2 3\n";
+    std::fs::write(dir.path().join("flat.obj"), obj).unwrap();
+    let (path, text) = mesh_scene(dir.path(), "flat.obj");
+    let err = Scene::parse(&path, text).unwrap_err().to_string();
+    assert!(
+        err.contains("flat.obj") && err.contains("non-zero area"),
+        "{err}"
+    );
+}
