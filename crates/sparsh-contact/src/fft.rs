@@ -11,8 +11,12 @@
 
 use std::sync::Arc;
 
+use rayon::prelude::*;
 use realfft::{ComplexToReal, RealFftPlanner, RealToComplex};
 use rustfft::{Fft, FftPlanner, num_complex::Complex};
+
+/// Complex values per parallel task: small windows stay on one thread.
+const PARALLEL_MIN: usize = 1 << 15;
 
 /// Zero-padded convolution plans for one window size.
 pub(crate) struct Conv {
@@ -77,11 +81,23 @@ impl Conv {
                 spec[k * self.py + j] = *v;
             }
         }
-        let mut scratch = vec![Complex::new(0.0, 0.0); self.fwd_y.get_inplace_scratch_len()];
-        for column in spec.chunks_exact_mut(self.py) {
-            self.fwd_y.process_with_scratch(column, &mut scratch);
-        }
+        self.columns(&mut spec, &self.fwd_y);
         spec
+    }
+
+    /// Transforms every column along y; columns are independent, so running them on several
+    /// threads gives the same bits as one.
+    fn columns(&self, spec: &mut [Complex<f64>], plan: &Arc<dyn Fft<f64>>) {
+        let scratch_len = plan.get_inplace_scratch_len();
+        let per_task = (PARALLEL_MIN / self.py).max(1) * self.py;
+        spec.par_chunks_mut(per_task).for_each_init(
+            || vec![Complex::new(0.0, 0.0); scratch_len],
+            |scratch, block| {
+                for column in block.chunks_exact_mut(self.py) {
+                    plan.process_with_scratch(column, scratch);
+                }
+            },
+        );
     }
 
     /// Spectrum of a window field (`nx × ny`, row-major).
@@ -122,10 +138,7 @@ impl Conv {
 
     /// Inverse transform, keeping the window (`nx × ny`, row-major, normalised).
     pub(crate) fn inverse(&self, mut spec: Spectrum) -> Vec<f64> {
-        let mut scratch = vec![Complex::new(0.0, 0.0); self.inv_y.get_inplace_scratch_len()];
-        for column in spec.chunks_exact_mut(self.py) {
-            self.inv_y.process_with_scratch(column, &mut scratch);
-        }
+        self.columns(&mut spec, &self.inv_y);
         let norm = 1.0 / (self.px * self.py) as f64;
         let mut out = vec![0.0; self.nx * self.ny];
         let mut row = self.c2r.make_input_vec();

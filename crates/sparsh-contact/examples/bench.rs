@@ -1,0 +1,87 @@
+//! Time per frame on a DIGIT-sized grid (320 × 240 cells of 0.0532 mm): a sphere of 6 mm
+//! diameter pressed 0.3 mm into the gel in 30 frames, then slid 0.6 mm along +x in 90 frames
+//! (stick, partial slip, gross sliding). Run with RAYON_NUM_THREADS=1 or 2.
+//!
+//! `cargo run --release --example bench -- [halfspace|layered] [normal|slip]`
+use std::time::Instant;
+
+use glam::DVec3;
+use sparsh_contact::{ContactInput, NormalControl, rigid_shift_mm, solver_for};
+use sparsh_scene::{GapField, Gel, Grid, Indenter, IndenterSpec, Pose, ShapeKind, SolverKind};
+
+fn main() {
+    let args: Vec<String> = std::env::args().collect();
+    let kind = match args.get(1).map(String::as_str) {
+        Some("layered") => SolverKind::Layered,
+        _ => SolverKind::Halfspace,
+    };
+    let slide = args.get(2).map(String::as_str) != Some("normal");
+    let grid = Grid {
+        nx: 320,
+        ny: 240,
+        cell_mm: 0.0532,
+    };
+    let gel = Gel {
+        youngs_modulus_kpa: 300.0,
+        poisson_ratio: 0.48,
+        thickness_mm: 3.0,
+        friction: 1.0,
+    };
+    let spec = IndenterSpec {
+        shape: ShapeKind::Sphere,
+        radius_mm: Some(3.0),
+        height_mm: None,
+        half_angle_deg: None,
+        size_mm: None,
+        mesh: None,
+        scale: None,
+        units: None,
+        anchor: None,
+    };
+    let indenter: Indenter = spec.build(std::path::Path::new(".")).expect("sphere");
+    let mut solver = solver_for(kind, &gel, grid);
+    let poses: Vec<Pose> = (0..120)
+        .map(|k| {
+            let depth = 0.3 * ((k + 1) as f64 / 30.0).min(1.0);
+            let x = if slide && k >= 30 {
+                0.6 * (k - 29) as f64 / 90.0
+            } else {
+                0.0
+            };
+            Pose {
+                position_mm: DVec3::new(x, 0.0, -depth),
+                rotation_deg: DVec3::ZERO,
+            }
+        })
+        .collect();
+    let mut total = 0.0;
+    let mut previous: Option<Pose> = None;
+    let mut states = std::collections::BTreeMap::new();
+    for pose in &poses {
+        let gap = GapField::cast(&indenter, pose, grid);
+        let shift = match &previous {
+            Some(p) => rigid_shift_mm(p, pose, &gap),
+            None => vec![[0.0; 2]; grid.len()],
+        };
+        let start = Instant::now();
+        let fields = solver
+            .solve(&ContactInput {
+                gap: &gap,
+                normal: NormalControl::Approach,
+                rigid_shift_mm: &shift,
+            })
+            .expect("solve");
+        total += start.elapsed().as_secs_f64();
+        *states.entry(fields.slip_state().name()).or_insert(0) += 1;
+        previous = Some(*pose);
+    }
+    println!(
+        "{:?} {}: {:.1} ms/frame over {} frames (threads {}), states {:?}",
+        kind,
+        if slide { "normal+tangential" } else { "normal" },
+        1e3 * total / poses.len() as f64,
+        poses.len(),
+        rayon::current_num_threads(),
+        states
+    );
+}
