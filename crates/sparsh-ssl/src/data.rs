@@ -1,0 +1,655 @@
+//! Tactile datasets for pretraining: official preprocessing, the dataset layouts, augmentation
+//! and a prefetching batch loader.
+//!
+//! Preprocessing follows the official code (`data/digit/utils.py`):
+//! 1. background subtraction `diff = clip((img − bg)/255 + 0.5, 0, 1)`, stored as 8-bit;
+//! 2. landscape frames rotated to portrait (counter-clockwise) and centre-cropped to 4:3;
+//! 3. resized (triangle filter) and scaled to `[0, 1]`; no mean/std normalization.
+//!
+//! Layouts read here:
+//! - a directory written by `sparsh generate`: `labels.jsonl` (rows with `frame`, `sequence`,
+//!   `frame_in_sequence`, `force_n`), `frames/NNNNNN.png`, `background.png` (when absent, the
+//!   first frame of each sequence is the background);
+//! - the official Sparsh pickles (YCB-Slide / Touch-Slide / Touch-and-Go style): each `*.pkl`
+//!   holds a list of JPEG (or PNG) byte strings — one sequence — either at the top level or as the
+//!   first list value of a dictionary; the background is a `bg*.jpg`/`bg*.png` beside the pickle,
+//!   else the sequence's first frame.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::mpsc::{Receiver, sync_channel};
+
+use image::{RgbImage, imageops};
+use rayon::prelude::*;
+
+use crate::Error;
+use crate::rng::Rng;
+
+/// One preprocessed frame: `[3, height, width]` in `[0, 1]`.
+pub type Frame = Arc<Vec<f32>>;
+
+/// One tactile sequence.
+#[derive(Debug, Clone)]
+pub struct Sequence {
+    /// Preprocessed frames in time order.
+    pub frames: Vec<Frame>,
+    /// Total force per frame `[fx, fy, fz]` in N, when labelled.
+    pub forces: Option<Vec<[f32; 3]>>,
+}
+
+/// Preprocessed sequences at one image size.
+#[derive(Debug, Clone)]
+pub struct Dataset {
+    /// The sequences.
+    pub sequences: Vec<Sequence>,
+    /// `[height, width]` of every frame.
+    pub size: [usize; 2],
+}
+
+/// Official preprocessing of one frame against its background (see the module docs).
+pub fn preprocess(img: &RgbImage, bg: &RgbImage, size: [usize; 2]) -> Result<Vec<f32>, String> {
+    if img.dimensions() != bg.dimensions() {
+        return Err(format!(
+            "frame is {:?} but background is {:?}",
+            img.dimensions(),
+            bg.dimensions()
+        ));
+    }
+    let diff = RgbImage::from_fn(img.width(), img.height(), |x, y| {
+        let (a, b) = (img.get_pixel(x, y).0, bg.get_pixel(x, y).0);
+        image::Rgb(std::array::from_fn(|c| {
+            let v = (a[c] as f32 - b[c] as f32) / 255.0 + 0.5;
+            (v.clamp(0.0, 1.0) * 255.0) as u8
+        }))
+    });
+    let portrait = if diff.width() > diff.height() {
+        imageops::rotate270(&diff)
+    } else {
+        diff
+    };
+    let (w, h) = portrait.dimensions();
+    let (cw, ch) = if h * 3 > w * 4 {
+        (w, (w * 4 + 1) / 3)
+    } else {
+        ((h * 3 + 2) / 4, h)
+    };
+    let (cw, ch) = (cw.min(w), ch.min(h));
+    let cropped = imageops::crop_imm(&portrait, (w - cw) / 2, (h - ch) / 2, cw, ch).to_image();
+    let resized = imageops::resize(
+        &cropped,
+        size[1] as u32,
+        size[0] as u32,
+        imageops::FilterType::Triangle,
+    );
+    let (hh, ww) = (size[0], size[1]);
+    let mut out = vec![0.0; 3 * hh * ww];
+    for (x, y, p) in resized.enumerate_pixels() {
+        for c in 0..3 {
+            out[(c * hh + y as usize) * ww + x as usize] = p.0[c] as f32 / 255.0;
+        }
+    }
+    Ok(out)
+}
+
+fn decode(bytes: &[u8], what: &Path) -> Result<RgbImage, Error> {
+    image::load_from_memory(bytes)
+        .map(|i| i.to_rgb8())
+        .map_err(|e| Error::file(what, format!("cannot decode image: {e}")))
+}
+
+fn read_image(path: &Path) -> Result<RgbImage, Error> {
+    let bytes = std::fs::read(path).map_err(|e| Error::file(path, e))?;
+    decode(&bytes, path)
+}
+
+#[derive(serde::Deserialize)]
+struct LabelRow {
+    frame: usize,
+    sequence: usize,
+    frame_in_sequence: usize,
+    #[serde(default)]
+    force_n: Option<[f32; 3]>,
+}
+
+impl Dataset {
+    /// Loads a directory: a generated dataset when it has `labels.jsonl`, else every `*.pkl`
+    /// below it (one level of sub-directories).
+    pub fn load(dir: &Path, size: [usize; 2]) -> Result<Self, Error> {
+        if !dir.is_dir() {
+            return Err(Error::file(dir, "not a directory"));
+        }
+        if dir.join("labels.jsonl").is_file() {
+            return Self::load_generated(dir, size);
+        }
+        let mut pickles = Vec::new();
+        for entry in std::fs::read_dir(dir).map_err(|e| Error::file(dir, e))? {
+            let p = entry.map_err(|e| Error::file(dir, e))?.path();
+            if p.is_dir() {
+                for sub in std::fs::read_dir(&p).map_err(|e| Error::file(&p, e))? {
+                    let q = sub.map_err(|e| Error::file(&p, e))?.path();
+                    if q.extension().is_some_and(|e| e == "pkl") {
+                        pickles.push(q);
+                    }
+                }
+            } else if p.extension().is_some_and(|e| e == "pkl") {
+                pickles.push(p);
+            }
+        }
+        if pickles.is_empty() {
+            return Err(Error::file(
+                dir,
+                "no frames: neither labels.jsonl nor *.pkl files",
+            ));
+        }
+        pickles.sort();
+        let sequences = pickles
+            .par_iter()
+            .map(|p| load_pickle(p, size))
+            .collect::<Result<Vec<_>, _>>()?;
+        Ok(Self { sequences, size })
+    }
+
+    /// Loads a dataset written by `sparsh generate`.
+    pub fn load_generated(dir: &Path, size: [usize; 2]) -> Result<Self, Error> {
+        let labels = dir.join("labels.jsonl");
+        let text = std::fs::read_to_string(&labels).map_err(|e| Error::file(&labels, e))?;
+        let mut by_seq: BTreeMap<usize, Vec<LabelRow>> = BTreeMap::new();
+        for (i, line) in text
+            .lines()
+            .enumerate()
+            .filter(|(_, l)| !l.trim().is_empty())
+        {
+            let row: LabelRow = serde_json::from_str(line)
+                .map_err(|e| Error::file(&labels, format!("line {}: {e}", i + 1)))?;
+            by_seq.entry(row.sequence).or_default().push(row);
+        }
+        if by_seq.is_empty() {
+            return Err(Error::file(&labels, "no frames"));
+        }
+        let bg_path = dir.join("background.png");
+        let shared_bg = if bg_path.is_file() {
+            Some(read_image(&bg_path)?)
+        } else {
+            None
+        };
+        let frame_path = |i: usize| dir.join("frames").join(format!("{i:06}.png"));
+        let mut sequences = Vec::new();
+        for (_, mut rows) in by_seq {
+            rows.sort_by_key(|r| r.frame_in_sequence);
+            let first = read_image(&frame_path(rows[0].frame))?;
+            let bg = shared_bg.as_ref().unwrap_or(&first);
+            let frames = rows
+                .par_iter()
+                .map(|r| {
+                    let p = frame_path(r.frame);
+                    let img = read_image(&p)?;
+                    preprocess(&img, bg, size)
+                        .map(Arc::new)
+                        .map_err(|e| Error::file(&p, e))
+                })
+                .collect::<Result<Vec<_>, _>>()?;
+            let forces = rows.iter().map(|r| r.force_n).collect::<Option<Vec<_>>>();
+            sequences.push(Sequence { frames, forces });
+        }
+        Ok(Self { sequences, size })
+    }
+
+    /// Number of frames in all sequences.
+    pub fn num_frames(&self) -> usize {
+        self.sequences.iter().map(|s| s.frames.len()).sum()
+    }
+}
+
+/// Frames of a pickle: the top-level list, or the first list value of a top-level dictionary.
+fn pickle_frames(v: serde_pickle::Value) -> Option<Vec<Vec<u8>>> {
+    use serde_pickle::{HashableValue, Value};
+    let as_bytes = |items: Vec<Value>| {
+        items
+            .into_iter()
+            .map(|x| match x {
+                Value::Bytes(b) => Some(b),
+                _ => None,
+            })
+            .collect::<Option<Vec<_>>>()
+    };
+    match v {
+        Value::List(items) | Value::Tuple(items) => as_bytes(items),
+        Value::Dict(map) => {
+            let mut entries: Vec<(HashableValue, Value)> = map.into_iter().collect();
+            entries.sort_by(|a, b| format!("{:?}", a.0).cmp(&format!("{:?}", b.0)));
+            entries.into_iter().find_map(|(_, v)| match v {
+                Value::List(items) | Value::Tuple(items) if !items.is_empty() => as_bytes(items),
+                _ => None,
+            })
+        }
+        _ => None,
+    }
+}
+
+/// Loads one official Sparsh pickle (a list of encoded frames) as one sequence.
+pub fn load_pickle(path: &Path, size: [usize; 2]) -> Result<Sequence, Error> {
+    let file = std::fs::File::open(path).map_err(|e| Error::file(path, e))?;
+    let value = serde_pickle::value_from_reader(
+        std::io::BufReader::new(file),
+        serde_pickle::DeOptions::new().replace_unresolved_globals(),
+    )
+    .map_err(|e| Error::file(path, format!("not a readable pickle: {e}")))?;
+    let frames = pickle_frames(value)
+        .filter(|f| !f.is_empty())
+        .ok_or_else(|| Error::file(path, "expected a list of encoded frames (bytes)"))?;
+    let bg = match background_beside(path) {
+        Some(p) => read_image(&p)?,
+        None => decode(&frames[0], path)?,
+    };
+    let frames = frames
+        .par_iter()
+        .enumerate()
+        .map(|(i, bytes)| {
+            let img = decode(bytes, path)?;
+            preprocess(&img, &bg, size)
+                .map(Arc::new)
+                .map_err(|e| Error::file(path, format!("frame {i}: {e}")))
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    Ok(Sequence {
+        frames,
+        forces: None,
+    })
+}
+
+fn background_beside(path: &Path) -> Option<PathBuf> {
+    let dir = path.parent()?;
+    let mut found: Vec<PathBuf> = std::fs::read_dir(dir)
+        .ok()?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| {
+            let name = p.file_name().and_then(|n| n.to_str()).unwrap_or("");
+            name.starts_with("bg") && (name.ends_with(".jpg") || name.ends_with(".png"))
+        })
+        .collect();
+    found.sort();
+    found.into_iter().next()
+}
+
+/// How the frames of one sample are stacked.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Stacking {
+    /// Frames at these offsets back in time concatenated on channels, one clip frame
+    /// (`[0, 5]`: I_t ⊕ I_{t−5}, 6 channels).
+    Channels(Vec<usize>),
+    /// Frames at these offsets as clip frames of 3 channels (`[0, 2, 4, 6]` for V-JEPA).
+    Frames(Vec<usize>),
+}
+
+impl Stacking {
+    fn offsets(&self) -> &[usize] {
+        match self {
+            Stacking::Channels(o) | Stacking::Frames(o) => o,
+        }
+    }
+
+    /// `[frames, channels]` of one sample.
+    pub fn shape(&self) -> [usize; 2] {
+        match self {
+            Stacking::Channels(o) => [1, 3 * o.len()],
+            Stacking::Frames(o) => [o.len(), 3],
+        }
+    }
+}
+
+/// Augmentation settings (official pretraining: flip 0.5, crop 0.2, rotation 0.2 at ±15°).
+#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct AugmentConfig {
+    /// Probability of a horizontal flip.
+    pub flip_p: f64,
+    /// Probability of a random crop (resized back).
+    pub crop_p: f64,
+    /// Area fraction range of the crop.
+    pub crop_scale: [f64; 2],
+    /// Probability of a rotation.
+    pub rotate_p: f64,
+    /// Largest rotation in degrees.
+    pub rotate_deg: f64,
+}
+
+impl Default for AugmentConfig {
+    fn default() -> Self {
+        Self {
+            flip_p: 0.5,
+            crop_p: 0.2,
+            crop_scale: [0.5, 1.0],
+            rotate_p: 0.2,
+            rotate_deg: 15.0,
+        }
+    }
+}
+
+impl AugmentConfig {
+    /// No augmentation.
+    pub fn none() -> Self {
+        Self {
+            flip_p: 0.0,
+            crop_p: 0.0,
+            crop_scale: [1.0, 1.0],
+            rotate_p: 0.0,
+            rotate_deg: 0.0,
+        }
+    }
+}
+
+/// One sample's geometric transform: output pixel → source pixel.
+#[derive(Debug, Clone, Copy)]
+struct Warp {
+    flip: bool,
+    scale: f64,
+    shift: [f64; 2],
+    angle: f64,
+}
+
+impl Warp {
+    fn sample(rng: &mut Rng, cfg: &AugmentConfig) -> Self {
+        let flip = rng.chance(cfg.flip_p);
+        let (scale, shift) = if rng.chance(cfg.crop_p) {
+            let s = rng.range_f64(cfg.crop_scale[0], cfg.crop_scale[1]).sqrt();
+            let room = 1.0 - s;
+            (
+                s,
+                [
+                    rng.range_f64(-room, room) * 0.5,
+                    rng.range_f64(-room, room) * 0.5,
+                ],
+            )
+        } else {
+            (1.0, [0.0, 0.0])
+        };
+        let angle = if rng.chance(cfg.rotate_p) {
+            rng.range_f64(-cfg.rotate_deg, cfg.rotate_deg).to_radians()
+        } else {
+            0.0
+        };
+        Self {
+            flip,
+            scale,
+            shift,
+            angle,
+        }
+    }
+
+    fn is_identity(&self) -> bool {
+        !self.flip && self.scale == 1.0 && self.angle == 0.0
+    }
+
+    /// Applies the warp to a `[3, h, w]` frame (bilinear, outside filled with 0.5, the
+    /// no-change grey of a difference image).
+    fn apply(&self, src: &[f32], h: usize, w: usize, out: &mut [f32]) {
+        if self.is_identity() {
+            out.copy_from_slice(src);
+            return;
+        }
+        let (cy, cx) = ((h as f64 - 1.0) / 2.0, (w as f64 - 1.0) / 2.0);
+        let (sin, cos) = self.angle.sin_cos();
+        for y in 0..h {
+            for x in 0..w {
+                let mut u = (x as f64 - cx) * self.scale;
+                let v = (y as f64 - cy) * self.scale;
+                if self.flip {
+                    u = -u;
+                }
+                let sx = cos * u - sin * v + cx + self.shift[0] * w as f64;
+                let sy = sin * u + cos * v + cy + self.shift[1] * h as f64;
+                let (x0, y0) = (sx.floor(), sy.floor());
+                let (fx, fy) = ((sx - x0) as f32, (sy - y0) as f32);
+                for c in 0..3 {
+                    let at = |yy: f64, xx: f64| {
+                        if yy < 0.0 || xx < 0.0 || yy >= h as f64 || xx >= w as f64 {
+                            0.5
+                        } else {
+                            src[(c * h + yy as usize) * w + xx as usize]
+                        }
+                    };
+                    let top = at(y0, x0) * (1.0 - fx) + at(y0, x0 + 1.0) * fx;
+                    let bot = at(y0 + 1.0, x0) * (1.0 - fx) + at(y0 + 1.0, x0 + 1.0) * fx;
+                    out[(c * h + y) * w + x] = top * (1.0 - fy) + bot * fy;
+                }
+            }
+        }
+    }
+}
+
+/// A batch on the host, ready to become a tensor.
+#[derive(Debug, Clone)]
+pub struct HostBatch {
+    /// The training step it belongs to.
+    pub step: usize,
+    /// Values of `[batch, frames, channels, height, width]`.
+    pub values: Vec<f32>,
+    /// The shape.
+    pub shape: [usize; 5],
+    /// Force labels per sample, when every sample has one.
+    pub forces: Option<Vec<[f32; 3]>>,
+}
+
+/// Samples `(sequence, frame)` of a dataset under a stacking, and batch assembly.
+#[derive(Debug, Clone)]
+pub struct Sampler {
+    data: Arc<Dataset>,
+    stacking: Stacking,
+    /// The valid `(sequence, frame)` pairs (frames with every offset inside the sequence).
+    pub samples: Vec<(usize, usize)>,
+}
+
+impl Sampler {
+    /// All samples of `data` whose offsets stay within their sequence.
+    pub fn new(data: Arc<Dataset>, stacking: Stacking) -> Result<Self, Error> {
+        let reach = stacking.offsets().iter().copied().max().unwrap_or(0);
+        let samples: Vec<(usize, usize)> = data
+            .sequences
+            .iter()
+            .enumerate()
+            .flat_map(|(s, seq)| (reach..seq.frames.len()).map(move |t| (s, t)))
+            .collect();
+        if samples.is_empty() {
+            return Err(Error::Data(format!(
+                "no sequence is longer than {reach} frames, the reach of the frame stacking"
+            )));
+        }
+        Ok(Self {
+            data,
+            stacking,
+            samples,
+        })
+    }
+
+    /// The dataset.
+    pub fn data(&self) -> &Dataset {
+        &self.data
+    }
+
+    /// Assembles the samples `picks` (indices into [`Self::samples`]) with per-sample warps
+    /// drawn from `(seed, step)`.
+    pub fn batch(&self, picks: &[usize], aug: &AugmentConfig, seed: u64, step: usize) -> HostBatch {
+        let [h, w] = self.data.size;
+        let [frames, chans] = self.stacking.shape();
+        let per = frames * chans * h * w;
+        let mut values = vec![0.0; picks.len() * per];
+        values
+            .par_chunks_mut(per)
+            .zip(picks.par_iter().enumerate())
+            .for_each(|(out, (i, &pick))| {
+                let (s, t) = self.samples[pick];
+                let warp =
+                    Warp::sample(&mut Rng::for_step(seed, step as u64, 1000 + i as u64), aug);
+                let seq = &self.data.sequences[s];
+                for (k, &off) in self.stacking.offsets().iter().enumerate() {
+                    let frame = &seq.frames[t - off];
+                    warp.apply(frame, h, w, &mut out[k * 3 * h * w..(k + 1) * 3 * h * w]);
+                }
+            });
+        let forces = picks
+            .iter()
+            .map(|&p| {
+                let (s, t) = self.samples[p];
+                self.data.sequences[s].forces.as_ref().map(|f| f[t])
+            })
+            .collect();
+        HostBatch {
+            step,
+            values,
+            shape: [picks.len(), frames, chans, h, w],
+            forces,
+        }
+    }
+
+    /// The sample indices of training step `step`: consecutive slices of a per-epoch permutation
+    /// drawn from `(seed, epoch)`.
+    pub fn picks(&self, seed: u64, step: usize, batch: usize) -> Vec<usize> {
+        let n = self.samples.len();
+        let mut out = Vec::with_capacity(batch);
+        let mut cached: Option<(usize, Vec<usize>)> = None;
+        for pos in step * batch..(step + 1) * batch {
+            let epoch = pos / n;
+            if cached.as_ref().is_none_or(|(e, _)| *e != epoch) {
+                cached = Some((epoch, Rng::for_step(seed, epoch as u64, 7).permutation(n)));
+            }
+            out.push(cached.as_ref().expect("set above").1[pos % n]);
+        }
+        out
+    }
+
+    /// Starts a thread that assembles the batches of steps `start..end` ahead of the trainer
+    /// (up to `prefetch` waiting); augmentation runs on the rayon pool.
+    pub fn prefetch(
+        &self,
+        aug: AugmentConfig,
+        seed: u64,
+        batch: usize,
+        start: usize,
+        end: usize,
+        prefetch: usize,
+    ) -> Receiver<HostBatch> {
+        let (tx, rx) = sync_channel(prefetch.max(1));
+        let me = self.clone();
+        std::thread::spawn(move || {
+            for step in start..end {
+                let picks = me.picks(seed, step, batch);
+                if tx.send(me.batch(&picks, &aug, seed, step)).is_err() {
+                    break;
+                }
+            }
+        });
+        rx
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn background_subtraction_rotation_crop_resize() {
+        // landscape 8×6 frame: background 100, frame 100 except a bright top-left pixel block
+        let bg = RgbImage::from_pixel(8, 6, image::Rgb([100, 100, 100]));
+        let mut img = bg.clone();
+        for x in 0..2 {
+            for y in 0..2 {
+                img.put_pixel(x, y, image::Rgb([255, 0, 100]));
+            }
+        }
+        let out = preprocess(&img, &bg, [8, 6]).unwrap();
+        assert_eq!(out.len(), 3 * 8 * 6);
+        // unchanged pixels become 0.5 (127/255 after the official 8-bit rounding)
+        let grey = 127.0 / 255.0;
+        let blue = &out[2 * 48..];
+        assert!(blue.iter().all(|v| (v - grey).abs() < 1e-6));
+        // red: (255 − 100)/255 + 0.5 clipped to 1; green: 0.5 − 100/255
+        let red = &out[..48];
+        assert!(red.iter().any(|&v| v > 0.9));
+        assert!(red.iter().all(|&v| v >= grey - 1e-6));
+        // counter-clockwise rotation takes the top-left corner of a landscape frame to the
+        // bottom-left of the portrait one
+        let at = |y: usize, x: usize| red[y * 6 + x];
+        assert!(at(7, 0) > 0.9, "{}", at(7, 0));
+        assert!((at(0, 5) - grey).abs() < 1e-6);
+    }
+
+    #[test]
+    fn mismatched_background_is_an_error() {
+        let a = RgbImage::new(8, 6);
+        let b = RgbImage::new(6, 8);
+        assert!(
+            preprocess(&a, &b, [4, 3])
+                .unwrap_err()
+                .contains("background")
+        );
+    }
+
+    fn toy(seqs: usize, len: usize) -> Arc<Dataset> {
+        let size = [8, 6];
+        Arc::new(Dataset {
+            size,
+            sequences: (0..seqs)
+                .map(|s| Sequence {
+                    frames: (0..len)
+                        .map(|t| Arc::new(vec![(s * 100 + t) as f32; 3 * 48]))
+                        .collect(),
+                    forces: Some((0..len).map(|t| [t as f32, 0.0, 1.0]).collect()),
+                })
+                .collect(),
+        })
+    }
+
+    #[test]
+    fn pairs_stay_in_sequence_and_epochs_cover_all_samples() {
+        let sampler = Sampler::new(toy(3, 8), Stacking::Channels(vec![0, 5])).unwrap();
+        assert_eq!(sampler.samples.len(), 3 * 3);
+        let b = sampler.batch(&[0, 4], &AugmentConfig::none(), 1, 0);
+        assert_eq!(b.shape, [2, 1, 6, 8, 6]);
+        // sample 0 = (seq 0, t 5): channels 0..3 from frame 5, 3..6 from frame 0
+        assert_eq!(b.values[0], 5.0);
+        assert_eq!(b.values[3 * 48], 0.0);
+        // sample 4 = (seq 1, t 6)
+        assert_eq!(b.values[6 * 48], 106.0);
+        assert_eq!(b.values[6 * 48 + 3 * 48], 101.0);
+        let mut seen: Vec<usize> = (0..3).flat_map(|s| sampler.picks(9, s, 3)).collect();
+        seen.sort_unstable();
+        assert_eq!(seen, (0..9).collect::<Vec<_>>());
+        assert!(Sampler::new(toy(2, 5), Stacking::Channels(vec![0, 5])).is_err());
+    }
+
+    #[test]
+    fn augmentation_is_deterministic_and_flip_mirrors() {
+        let mut v = vec![0.0f32; 3 * 48];
+        for y in 0..8 {
+            for x in 0..6 {
+                for c in 0..3 {
+                    v[(c * 8 + y) * 6 + x] = x as f32;
+                }
+            }
+        }
+        let flip = Warp {
+            flip: true,
+            scale: 1.0,
+            shift: [0.0, 0.0],
+            angle: 0.0,
+        };
+        let mut out = vec![0.0; 3 * 48];
+        flip.apply(&v, 8, 6, &mut out);
+        for (x, v) in out.iter().take(6).enumerate() {
+            assert!((v - (5 - x) as f32).abs() < 1e-5);
+        }
+        let data = Arc::new(Dataset {
+            size: [8, 6],
+            sequences: vec![Sequence {
+                frames: (0..6).map(|_| Arc::new(v.clone())).collect(),
+                forces: None,
+            }],
+        });
+        let s = Sampler::new(data, Stacking::Frames(vec![0, 2, 4])).unwrap();
+        let a = s.batch(&[0, 1, 0], &AugmentConfig::default(), 5, 3);
+        let b = s.batch(&[0, 1, 0], &AugmentConfig::default(), 5, 3);
+        assert_eq!(a.values, b.values);
+        assert_eq!(a.shape, [3, 3, 3, 8, 6]);
+    }
+}

@@ -1,0 +1,210 @@
+//! DINO (Caron et al. 2021) as configured by Sparsh: views are token crops of one image, the
+//! first register token stands in for `[cls]`, a 3-layer projection head ends in weight-normalized
+//! prototypes, the teacher is an EMA of the student, its outputs are centred and sharpened.
+
+use burn::module::Param;
+use burn::nn::{Linear, LinearConfig};
+use burn::prelude::*;
+use burn::tensor::activation::{gelu, log_softmax, softmax};
+
+use crate::ema::ema_update;
+use crate::masks::DinoViews;
+use crate::vit::{Vit, VitConfig, gather_tokens, index_tensor};
+
+/// Configuration of [`Dino`] (official: hidden 2048, bottleneck 256, 65 536 prototypes,
+/// student temperature 0.1, centre momentum 0.9).
+#[derive(Config, Debug)]
+pub struct DinoConfig {
+    /// The encoder; needs at least one register token.
+    pub encoder: VitConfig,
+    /// Hidden width of the projection head.
+    #[config(default = 2048)]
+    pub head_hidden: usize,
+    /// Bottleneck width before the prototypes.
+    #[config(default = 256)]
+    pub head_bottleneck: usize,
+    /// Number of prototypes (output dimension).
+    #[config(default = 65536)]
+    pub num_prototypes: usize,
+    /// Student softmax temperature.
+    #[config(default = 0.1)]
+    pub student_temp: f64,
+    /// Momentum of the teacher-output centre.
+    #[config(default = 0.9)]
+    pub center_momentum: f64,
+}
+
+/// The DINO projection head: `Linear → GELU → Linear → GELU → Linear`, ℓ2-normalize, then
+/// prototypes with unit-norm columns (weight normalization with the gain fixed to 1).
+#[derive(Module, Debug)]
+pub struct DinoHead {
+    /// The three MLP layers.
+    pub mlp: Vec<Linear>,
+    /// Prototype directions `[bottleneck, prototypes]`, normalized per column in the forward.
+    pub last_layer: Param<Tensor<2>>,
+}
+
+impl DinoHead {
+    /// Prototype scores.
+    ///
+    /// # Shapes
+    /// - `x`: `[batch, dim]` → `[batch, prototypes]`
+    pub fn forward(&self, x: Tensor<2>) -> Tensor<2> {
+        let n = self.mlp.len();
+        let mut x = x;
+        for (i, layer) in self.mlp.iter().enumerate() {
+            x = layer.forward(x);
+            if i + 1 < n {
+                x = gelu(x);
+            }
+        }
+        let x = x.clone() / (x.powi_scalar(2).sum_dim(1).sqrt() + 1e-6);
+        let w = self.last_layer.val();
+        let w = w.clone() / (w.powi_scalar(2).sum_dim(0).sqrt() + 1e-6);
+        x.matmul(w)
+    }
+}
+
+/// DINO student and teacher.
+#[derive(Module, Debug)]
+pub struct Dino {
+    /// The encoder being pretrained.
+    pub encoder: Vit,
+    /// Student head.
+    pub head: DinoHead,
+    /// Teacher encoder (EMA, no gradient).
+    pub teacher_encoder: Vit,
+    /// Teacher head (EMA, no gradient).
+    pub teacher_head: DinoHead,
+    /// Running centre of the teacher outputs `[1, prototypes]` (no gradient).
+    pub center: Param<Tensor<2>>,
+    /// Student temperature.
+    #[module(skip)]
+    pub student_temp: f64,
+    /// Centre momentum.
+    #[module(skip)]
+    pub center_momentum: f64,
+}
+
+impl DinoConfig {
+    fn head(&self, device: &Device) -> DinoHead {
+        let dims = [
+            self.encoder.embed_dim,
+            self.head_hidden,
+            self.head_hidden,
+            self.head_bottleneck,
+        ];
+        DinoHead {
+            mlp: dims
+                .windows(2)
+                .map(|w| LinearConfig::new(w[0], w[1]).init(device))
+                .collect(),
+            last_layer: Param::from_tensor(Tensor::random(
+                [self.head_bottleneck, self.num_prototypes],
+                burn::tensor::Distribution::Normal(0.0, 0.02),
+                device,
+            )),
+        }
+    }
+
+    /// Initialize a [`Dino`]; the teacher starts as a copy of the student.
+    pub fn init(&self, device: &Device) -> Dino {
+        let encoder = self.encoder.init(device);
+        let head = self.head(device);
+        let teacher_encoder = ema_update(self.encoder.init(device), &encoder, 0.0).no_grad();
+        let teacher_head = ema_update(self.head(device), &head, 0.0).no_grad();
+        Dino {
+            encoder,
+            head,
+            teacher_encoder,
+            teacher_head,
+            center: Param::from_tensor(Tensor::zeros([1, self.num_prototypes], device))
+                .set_require_grad(false),
+            student_temp: self.student_temp,
+            center_momentum: self.center_momentum,
+        }
+    }
+}
+
+fn cls(vit: &Vit, tokens: Tensor<3>, views: &[Vec<Vec<usize>>]) -> Tensor<2> {
+    let device = tokens.device();
+    let rows: Vec<Vec<usize>> = views.iter().flatten().cloned().collect();
+    let batch = tokens.repeat_dim(0, views.len());
+    let out = vit.forward_tokens(gather_tokens(batch, index_tensor(&rows, &device)));
+    let reg = out.registers.expect("DINO encoder has a register token");
+    let [b, _, d] = reg.dims();
+    reg.narrow(1, 0, 1).reshape([b, d])
+}
+
+impl Dino {
+    /// Cross-entropy between the sharpened, centred teacher distribution of each global view and
+    /// the student distribution of every other view; also returns the teacher's mean output for
+    /// the centre update.
+    ///
+    /// ```text
+    /// P_t = softmax((t − c) / τ_t),  log P_s = log_softmax(s / τ_s)
+    /// loss = mean_{i ∈ global, v ≠ i} mean_batch( −Σ_k P_t,i · log P_s,v )
+    /// ```
+    ///
+    /// # Shapes
+    /// - `x`: `[batch, frames, channels, height, width]`
+    /// - output: loss `[1]`, teacher mean `[1, prototypes]`
+    pub fn loss(
+        &self,
+        x: Tensor<5>,
+        views: &DinoViews,
+        teacher_temp: f64,
+    ) -> (Tensor<1>, Tensor<2>) {
+        let b = x.dims()[0];
+        let g = views.global.len();
+        let student_tokens = self.encoder.embed(x.clone());
+        let teacher_tokens = self.teacher_encoder.embed(x.detach()).detach();
+        let t_out = self
+            .teacher_head
+            .forward(cls(&self.teacher_encoder, teacher_tokens, &views.global))
+            .detach();
+        let t_mean = t_out.clone().mean_dim(0);
+        let t_prob = softmax((t_out - self.center.val()).div_scalar(teacher_temp), 1);
+        let s_global = self
+            .head
+            .forward(cls(&self.encoder, student_tokens.clone(), &views.global));
+        let mut s_all = vec![s_global];
+        if !views.local.is_empty() {
+            s_all.push(
+                self.head
+                    .forward(cls(&self.encoder, student_tokens, &views.local)),
+            );
+        }
+        let s_logp = log_softmax(Tensor::cat(s_all, 0).div_scalar(self.student_temp), 1);
+        let n_views = s_logp.dims()[0] / b;
+        let mut total: Option<Tensor<1>> = None;
+        let mut pairs = 0;
+        for i in 0..g {
+            let t = t_prob.clone().narrow(0, i * b, b);
+            for v in (0..n_views).filter(|&v| v != i) {
+                let s = s_logp.clone().narrow(0, v * b, b);
+                let ce = (t.clone() * s).sum_dim(1).mean().neg();
+                total = Some(match total {
+                    Some(acc) => acc + ce,
+                    None => ce,
+                });
+                pairs += 1;
+            }
+        }
+        let loss = total.expect("at least two views").div_scalar(pairs as f64);
+        (loss, t_mean)
+    }
+
+    /// After an optimizer step: EMA of the teacher with `momentum`, centre update with the
+    /// teacher mean of the step.
+    pub fn after_step(mut self, momentum: f64, teacher_mean: Tensor<2>) -> Self {
+        self.teacher_encoder = ema_update(self.teacher_encoder, &self.encoder, momentum);
+        self.teacher_head = ema_update(self.teacher_head, &self.head, momentum);
+        let m = self.center_momentum;
+        let mean = teacher_mean.detach();
+        self.center = self
+            .center
+            .map(|c| (c.mul_scalar(m) + mean.mul_scalar(1.0 - m)).detach());
+        self
+    }
+}

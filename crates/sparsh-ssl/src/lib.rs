@@ -1,0 +1,51 @@
+#![warn(missing_docs)]
+//! Self-supervised touch representations (Sparsh) in burn.
+//!
+//! - [`vit`]: the ViT encoder (no `[cls]`, fixed sinusoidal positions, optional registers).
+//! - [`masks`]: the masking and view samplers of the four objectives.
+//! - [`mae`], [`dino`], [`jepa`]: MAE, DINO, I-JEPA and V-JEPA.
+//! - [`data`]: official preprocessing, datasets (generated, Sparsh pickles), the batch loader.
+//! - [`weights`]: safetensors with the official checkpoints' key names.
+//! - [`recipe`], [`train`], [`probe`]: training recipes, the training loop, the online force probe.
+
+pub mod data;
+pub mod dino;
+pub mod ema;
+pub mod jepa;
+pub mod mae;
+pub mod masks;
+pub mod probe;
+pub mod recipe;
+pub mod rng;
+pub mod train;
+pub mod vit;
+pub mod weights;
+
+/// Errors of this crate; each message names the file or field at fault.
+#[derive(Debug, thiserror::Error)]
+pub enum Error {
+    /// An invalid configuration value.
+    #[error("config: {0}")]
+    Config(String),
+    /// A file that cannot be read or parsed.
+    #[error("{path}: {msg}")]
+    File {
+        /// The file.
+        path: String,
+        /// What is wrong with it.
+        msg: String,
+    },
+    /// Anything else in the data.
+    #[error("data: {0}")]
+    Data(String),
+}
+
+impl Error {
+    /// A [`Error::File`] for `path`.
+    pub fn file(path: impl AsRef<std::path::Path>, msg: impl std::fmt::Display) -> Self {
+        Error::File {
+            path: path.as_ref().display().to_string(),
+            msg: msg.to_string(),
+        }
+    }
+}

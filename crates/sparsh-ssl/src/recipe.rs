@@ -1,0 +1,525 @@
+//! Training recipes: one TOML file per run (`assets/ssl/*.toml`), unknown keys rejected.
+//!
+//! ```toml
+//! objective = "mae"            # mae | dino | ijepa | vjepa
+//! seed = 0
+//! [encoder]                    # size preset, then overrides
+//! size = "tiny"
+//! img_size = [96, 72]          # [height, width], portrait 4:3
+//! patch_size = 8
+//! depth = 6
+//! [mae]                        # or [dino] / [jepa]: the objective's settings
+//! decoder_dim = 128
+//! [optim]
+//! steps = 1500
+//! batch_size = 32
+//! lr = 1.5e-4
+//! [data]
+//! frame_offsets = [0, 5]       # I_t ⊕ I_{t−5}
+//! [log]
+//! probe_every = 250
+//! ```
+
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+
+use crate::Error;
+use crate::data::{AugmentConfig, Stacking};
+use crate::dino::DinoConfig;
+use crate::jepa::{JepaConfig, JepaLoss};
+use crate::mae::MaeConfig;
+use crate::masks::{DinoViewConfig, IjepaMaskConfig, TubeMaskConfig, default_tube_masks};
+use crate::vit::{VitConfig, size_preset};
+
+/// The self-supervised objective.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum ObjectiveKind {
+    /// Masked autoencoder.
+    Mae,
+    /// DINO self-distillation.
+    Dino,
+    /// I-JEPA.
+    Ijepa,
+    /// V-JEPA.
+    Vjepa,
+}
+
+/// `[encoder]`: a size preset with optional overrides.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct EncoderSection {
+    /// `tiny`, `small` or `base`.
+    #[serde(default = "default_size")]
+    pub size: String,
+    /// `[height, width]`.
+    pub img_size: [usize; 2],
+    /// Patch side.
+    pub patch_size: usize,
+    /// Overrides the preset's width.
+    pub embed_dim: Option<usize>,
+    /// Overrides the preset's depth.
+    pub depth: Option<usize>,
+    /// Overrides the preset's heads.
+    pub num_heads: Option<usize>,
+    /// MLP ratio.
+    #[serde(default = "default_mlp_ratio")]
+    pub mlp_ratio: f64,
+    /// Register tokens (DINO needs at least one).
+    #[serde(default)]
+    pub num_registers: usize,
+}
+
+fn default_size() -> String {
+    "tiny".into()
+}
+fn default_mlp_ratio() -> f64 {
+    4.0
+}
+
+/// `[mae]`.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct MaeSection {
+    /// Fraction masked.
+    pub mask_ratio: f64,
+    /// Decoder width.
+    pub decoder_dim: usize,
+    /// Decoder blocks.
+    pub decoder_depth: usize,
+    /// Decoder heads.
+    pub decoder_heads: usize,
+}
+
+impl Default for MaeSection {
+    fn default() -> Self {
+        Self {
+            mask_ratio: 0.75,
+            decoder_dim: 512,
+            decoder_depth: 8,
+            decoder_heads: 16,
+        }
+    }
+}
+
+/// `[dino]`.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct DinoSection {
+    /// Head hidden width.
+    pub head_hidden: usize,
+    /// Head bottleneck.
+    pub head_bottleneck: usize,
+    /// Prototypes.
+    pub num_prototypes: usize,
+    /// Student temperature.
+    pub student_temp: f64,
+    /// Teacher temperature: start, end of the warm-up.
+    pub teacher_temp: [f64; 2],
+    /// Steps of the teacher temperature warm-up.
+    pub teacher_temp_warmup_steps: usize,
+    /// Centre momentum.
+    pub center_momentum: f64,
+    /// Teacher EMA momentum: start, end (linear over the run; official fixed 0.998).
+    pub ema: [f64; 2],
+    /// Views.
+    pub views: DinoViewConfig,
+}
+
+impl Default for DinoSection {
+    fn default() -> Self {
+        Self {
+            head_hidden: 2048,
+            head_bottleneck: 256,
+            num_prototypes: 65536,
+            student_temp: 0.1,
+            teacher_temp: [0.04, 0.07],
+            teacher_temp_warmup_steps: 1000,
+            center_momentum: 0.9,
+            ema: [0.998, 0.998],
+            views: DinoViewConfig::default(),
+        }
+    }
+}
+
+/// `[jepa]` (I-JEPA and V-JEPA).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct JepaSection {
+    /// Predictor width (official I-JEPA 192, V-JEPA 384).
+    pub predictor_dim: usize,
+    /// Predictor blocks (official I-JEPA 6, V-JEPA 12).
+    pub predictor_depth: usize,
+    /// Predictor heads.
+    pub predictor_heads: usize,
+    /// Target-encoder EMA momentum: start, end (official I-JEPA 0.996→1, V-JEPA 0.997→1).
+    pub ema: [f64; 2],
+    /// I-JEPA block masks.
+    pub masks: IjepaMaskConfig,
+    /// V-JEPA tube-mask generators.
+    pub tube_masks: Vec<TubeMaskConfig>,
+    /// V-JEPA tubelet length.
+    pub tubelet_size: usize,
+}
+
+impl Default for JepaSection {
+    fn default() -> Self {
+        Self {
+            predictor_dim: 192,
+            predictor_depth: 6,
+            predictor_heads: 6,
+            ema: [0.996, 1.0],
+            masks: IjepaMaskConfig::default(),
+            tube_masks: default_tube_masks(),
+            tubelet_size: 2,
+        }
+    }
+}
+
+/// `[optim]`: AdamW with linear warm-up and cosine decay.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct OptimSection {
+    /// Total steps of the schedule.
+    pub steps: usize,
+    /// Samples per step.
+    pub batch_size: usize,
+    /// Peak learning rate.
+    pub lr: f64,
+    /// Final learning rate.
+    pub min_lr: f64,
+    /// Linear warm-up steps.
+    pub warmup_steps: usize,
+    /// AdamW weight decay (fixed; the official run ramps 0.04 → 0.4).
+    pub weight_decay: f64,
+}
+
+impl Default for OptimSection {
+    fn default() -> Self {
+        Self {
+            steps: 1000,
+            batch_size: 32,
+            lr: 1e-4,
+            min_lr: 1e-6,
+            warmup_steps: 50,
+            weight_decay: 0.04,
+        }
+    }
+}
+
+impl OptimSection {
+    /// Learning rate at `step`: linear warm-up to `lr`, then cosine to `min_lr`.
+    pub fn lr_at(&self, step: usize) -> f64 {
+        if step < self.warmup_steps {
+            return self.lr * (step + 1) as f64 / self.warmup_steps as f64;
+        }
+        let span = self.steps.saturating_sub(self.warmup_steps).max(1);
+        let t = ((step - self.warmup_steps) as f64 / span as f64).min(1.0);
+        self.min_lr + 0.5 * (self.lr - self.min_lr) * (1.0 + (std::f64::consts::PI * t).cos())
+    }
+}
+
+/// `[data]`.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct DataSection {
+    /// Frames back in time stacked into one sample (`[0, 5]` images, `[0, 2, 4, 6]` V-JEPA);
+    /// empty means the objective's official default.
+    pub frame_offsets: Vec<usize>,
+    /// Augmentation.
+    pub augment: AugmentConfig,
+    /// Batches assembled ahead of the trainer.
+    pub prefetch: usize,
+}
+
+impl Default for DataSection {
+    fn default() -> Self {
+        Self {
+            frame_offsets: Vec::new(),
+            augment: AugmentConfig::default(),
+            prefetch: 3,
+        }
+    }
+}
+
+/// `[log]`.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct LogSection {
+    /// Steps between checkpoints.
+    pub checkpoint_every: usize,
+    /// Steps between online force probes (0: never).
+    pub probe_every: usize,
+    /// Labelled samples used by the probe at most.
+    pub probe_max_samples: usize,
+}
+
+impl Default for LogSection {
+    fn default() -> Self {
+        Self {
+            checkpoint_every: 100,
+            probe_every: 250,
+            probe_max_samples: 512,
+        }
+    }
+}
+
+/// A training recipe.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Recipe {
+    /// The objective.
+    pub objective: ObjectiveKind,
+    /// Seed of every random choice.
+    #[serde(default)]
+    pub seed: u64,
+    /// The encoder.
+    pub encoder: EncoderSection,
+    /// MAE settings.
+    #[serde(default)]
+    pub mae: MaeSection,
+    /// DINO settings.
+    #[serde(default)]
+    pub dino: DinoSection,
+    /// I-JEPA / V-JEPA settings.
+    #[serde(default)]
+    pub jepa: JepaSection,
+    /// Optimizer.
+    #[serde(default)]
+    pub optim: OptimSection,
+    /// Data.
+    #[serde(default)]
+    pub data: DataSection,
+    /// Logging, checkpoints, probe.
+    #[serde(default)]
+    pub log: LogSection,
+}
+
+impl Recipe {
+    /// Parses and validates a recipe file; errors name the file and the field.
+    pub fn load(path: &Path) -> Result<Self, Error> {
+        let text = std::fs::read_to_string(path).map_err(|e| Error::file(path, e))?;
+        Self::parse(&text).map_err(|e| Error::file(path, e))
+    }
+
+    /// Parses and validates recipe text.
+    pub fn parse(text: &str) -> Result<Self, String> {
+        let recipe: Recipe = toml::from_str(text).map_err(|e| {
+            let msg = e.message().to_string();
+            match e.span() {
+                Some(span) => {
+                    let line = text[..span.start].lines().count().max(1);
+                    format!("line {line}: {msg}")
+                }
+                None => msg,
+            }
+        })?;
+        recipe.validate().map_err(|e| e.to_string())?;
+        Ok(recipe)
+    }
+
+    /// Frame offsets of one sample.
+    pub fn frame_offsets(&self) -> Vec<usize> {
+        if !self.data.frame_offsets.is_empty() {
+            return self.data.frame_offsets.clone();
+        }
+        match self.objective {
+            ObjectiveKind::Vjepa => vec![0, 2, 4, 6],
+            _ => vec![0, 5],
+        }
+    }
+
+    /// How frames are stacked into samples.
+    pub fn stacking(&self) -> Stacking {
+        match self.objective {
+            ObjectiveKind::Vjepa => Stacking::Frames(self.frame_offsets()),
+            _ => Stacking::Channels(self.frame_offsets()),
+        }
+    }
+
+    /// The encoder configuration.
+    pub fn encoder_config(&self) -> Result<VitConfig, Error> {
+        let e = &self.encoder;
+        let (dim, depth, heads) = size_preset(&e.size).ok_or_else(|| {
+            Error::Config(format!(
+                "encoder.size: `{}` is not one of tiny, small, base",
+                e.size
+            ))
+        })?;
+        let [frames, chans] = self.stacking().shape();
+        let tubelet = if self.objective == ObjectiveKind::Vjepa {
+            self.jepa.tubelet_size
+        } else {
+            1
+        };
+        let cfg = VitConfig::new(e.img_size, e.patch_size)
+            .with_in_chans(chans)
+            .with_num_frames(frames)
+            .with_tubelet_size(tubelet)
+            .with_embed_dim(e.embed_dim.unwrap_or(dim))
+            .with_depth(e.depth.unwrap_or(depth))
+            .with_num_heads(e.num_heads.unwrap_or(heads))
+            .with_mlp_ratio(e.mlp_ratio)
+            .with_num_registers(e.num_registers);
+        cfg.validate().map_err(|e| {
+            Error::Config(format!(
+                "encoder.{}",
+                e.to_string().trim_start_matches("config: ")
+            ))
+        })?;
+        Ok(cfg)
+    }
+
+    /// Checks the recipe as a whole.
+    pub fn validate(&self) -> Result<(), Error> {
+        let enc = self.encoder_config()?;
+        let bad = |m: String| Err(Error::Config(m));
+        if self.optim.steps == 0 || self.optim.batch_size == 0 {
+            return bad("optim.steps and optim.batch_size must be positive".into());
+        }
+        if self.log.checkpoint_every == 0 {
+            return bad("log.checkpoint_every must be positive".into());
+        }
+        match self.objective {
+            ObjectiveKind::Mae => {
+                let r = self.mae.mask_ratio;
+                if !(0.0..1.0).contains(&r) {
+                    return bad(format!("mae.mask_ratio: {r} is not in [0, 1)"));
+                }
+                if !self
+                    .mae
+                    .decoder_dim
+                    .is_multiple_of(self.mae.decoder_heads.max(1))
+                    || !self.mae.decoder_dim.is_multiple_of(8)
+                {
+                    return bad(
+                        "mae.decoder_dim must be a multiple of 8 and of mae.decoder_heads".into(),
+                    );
+                }
+            }
+            ObjectiveKind::Dino => {
+                if enc.num_registers == 0 {
+                    return bad(
+                        "encoder.num_registers: DINO needs at least one register token (its [cls])"
+                            .into(),
+                    );
+                }
+                if self.dino.views.num_global < 2 {
+                    return bad("dino.views.num_global must be at least 2".into());
+                }
+            }
+            ObjectiveKind::Ijepa | ObjectiveKind::Vjepa => {
+                let j = &self.jepa;
+                if !j.predictor_dim.is_multiple_of(j.predictor_heads.max(1))
+                    || !j.predictor_dim.is_multiple_of(8)
+                {
+                    return bad(
+                        "jepa.predictor_dim must be a multiple of 8 and of jepa.predictor_heads"
+                            .into(),
+                    );
+                }
+                if self.objective == ObjectiveKind::Vjepa && j.tube_masks.is_empty() {
+                    return bad("jepa.tube_masks must list at least one generator".into());
+                }
+                if self.objective == ObjectiveKind::Vjepa && enc.grid()[0] < 1 {
+                    return bad("data.frame_offsets: V-JEPA needs at least one tubelet".into());
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// MAE configuration.
+    pub fn mae_config(&self) -> Result<MaeConfig, Error> {
+        Ok(MaeConfig::new(self.encoder_config()?)
+            .with_mask_ratio(self.mae.mask_ratio)
+            .with_decoder_dim(self.mae.decoder_dim)
+            .with_decoder_depth(self.mae.decoder_depth)
+            .with_decoder_heads(self.mae.decoder_heads))
+    }
+
+    /// DINO configuration.
+    pub fn dino_config(&self) -> Result<DinoConfig, Error> {
+        let d = &self.dino;
+        Ok(DinoConfig::new(self.encoder_config()?)
+            .with_head_hidden(d.head_hidden)
+            .with_head_bottleneck(d.head_bottleneck)
+            .with_num_prototypes(d.num_prototypes)
+            .with_student_temp(d.student_temp)
+            .with_center_momentum(d.center_momentum))
+    }
+
+    /// I-JEPA / V-JEPA configuration.
+    pub fn jepa_config(&self) -> Result<JepaConfig, Error> {
+        let j = &self.jepa;
+        let loss = if self.objective == ObjectiveKind::Vjepa {
+            JepaLoss::L1
+        } else {
+            JepaLoss::SmoothL1
+        };
+        Ok(JepaConfig::new(
+            self.encoder_config()?,
+            j.predictor_dim,
+            j.predictor_depth,
+            j.predictor_heads,
+            loss,
+        ))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const BASE: &str = "objective = \"mae\"\n[encoder]\nimg_size = [32, 24]\npatch_size = 8\n";
+
+    #[test]
+    fn parses_minimal_and_defaults_are_official() {
+        let r = Recipe::parse(BASE).unwrap();
+        assert_eq!(r.mae.mask_ratio, 0.75);
+        assert_eq!(r.dino.num_prototypes, 65536);
+        assert_eq!(r.jepa.masks.num_targets, 4);
+        assert_eq!(r.frame_offsets(), vec![0, 5]);
+        let enc = r.encoder_config().unwrap();
+        assert_eq!((enc.in_chans, enc.embed_dim, enc.depth), (6, 192, 12));
+        // the official portrait input stays expressible: 320×240, patch 16 → 300 tokens
+        let off = Recipe::parse(
+            "objective = \"mae\"\n[encoder]\nsize = \"base\"\nimg_size = [320, 240]\npatch_size = 16\n",
+        )
+        .unwrap();
+        assert_eq!(off.encoder_config().unwrap().num_patches(), 300);
+    }
+
+    #[test]
+    fn unknown_keys_and_bad_shapes_are_one_line_errors() {
+        let e = Recipe::parse(&format!("{BASE}bogus = 1\n")).unwrap_err();
+        assert!(e.contains("bogus") && !e.contains('\n'), "{e}");
+        let e = Recipe::parse(&format!("{BASE}[optim]\nlearning_rate = 1\n")).unwrap_err();
+        assert!(e.contains("learning_rate"), "{e}");
+        let e =
+            Recipe::parse("objective = \"mae\"\n[encoder]\nimg_size = [30, 24]\npatch_size = 8\n")
+                .unwrap_err();
+        assert!(e.contains("img_size") && !e.contains('\n'), "{e}");
+        let e = Recipe::parse(&BASE.replace("mae", "dino")).unwrap_err();
+        assert!(e.contains("num_registers"), "{e}");
+        let e = Recipe::parse(&BASE.replace("mae", "simclr")).unwrap_err();
+        assert!(e.contains("simclr") || e.contains("variant"), "{e}");
+    }
+
+    #[test]
+    fn schedule_warms_up_then_decays() {
+        let o = OptimSection {
+            steps: 100,
+            warmup_steps: 10,
+            lr: 1.0,
+            min_lr: 0.0,
+            ..Default::default()
+        };
+        assert!((o.lr_at(0) - 0.1).abs() < 1e-12);
+        assert!((o.lr_at(9) - 1.0).abs() < 1e-12);
+        assert!((o.lr_at(10) - 1.0).abs() < 1e-12);
+        assert!((o.lr_at(55) - 0.5).abs() < 1e-12);
+        assert!(o.lr_at(100).abs() < 1e-12);
+    }
+}

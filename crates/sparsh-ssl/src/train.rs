@@ -1,0 +1,498 @@
+//! The pretraining loop: AdamW with warm-up + cosine, one objective per run, a CSV log of loss,
+//! learning rate and the online force probe, atomic checkpoints and exact resume.
+//!
+//! A run directory holds `recipe.toml` (the recipe it was started with), `log.csv`
+//! (`step,loss,lr,probe_rmse_mn,probe_baseline_mn,wait_s,step_s`), `checkpoint/`
+//! (`model.bpk`, `optim.bpk`, `state.json`, `encoder.safetensors`) and, at the end,
+//! `encoder.safetensors`. A checkpoint is written to `checkpoint.tmp/` and renamed into place, so
+//! an interrupted write never leaves a half checkpoint. Every random draw of step `s` comes from
+//! `(seed, s)`, so `--resume` continues with the very batches, masks and views an uninterrupted
+//! run would have used.
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Instant;
+
+use burn::module::Module;
+use burn::optim::{AdamWConfig, GradientsParams};
+use burn::prelude::*;
+
+use crate::Error;
+use crate::data::{Dataset, HostBatch, Sampler};
+use crate::dino::Dino;
+use crate::ema::momentum_at;
+use crate::jepa::Jepa;
+use crate::mae::Mae;
+use crate::masks::{dino_views, ijepa_masks, mae_mask, tube_masks};
+use crate::probe::{ProbeScore, ProbeSet};
+use crate::recipe::{ObjectiveKind, Recipe};
+use crate::rng::Rng;
+use crate::vit::Vit;
+
+/// Writes `bytes` to `path` through a temporary file and a rename.
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), Error> {
+    let tmp = path.with_extension("tmp-write");
+    std::fs::write(&tmp, bytes).map_err(|e| Error::file(&tmp, e))?;
+    std::fs::rename(&tmp, path).map_err(|e| Error::file(path, e))
+}
+
+/// A model under training, one variant per objective.
+// One value per run: boxing the larger variants would buy nothing.
+#[allow(clippy::large_enum_variant)]
+#[derive(Debug)]
+pub enum Trainee {
+    /// MAE.
+    Mae(Mae),
+    /// DINO.
+    Dino(Dino),
+    /// I-JEPA or V-JEPA.
+    Jepa(Jepa),
+}
+
+/// What one training step reports.
+#[derive(Debug, Clone, Copy)]
+pub struct StepReport {
+    /// Steps completed.
+    pub step: usize,
+    /// Total steps of the run.
+    pub total: usize,
+    /// Loss of this step.
+    pub loss: f64,
+    /// Learning rate of this step.
+    pub lr: f64,
+    /// Seconds the trainer waited for the batch.
+    pub wait_s: f64,
+    /// Seconds of the whole step.
+    pub step_s: f64,
+    /// Probe score, when the probe ran before this step.
+    pub probe: Option<ProbeScore>,
+}
+
+impl Trainee {
+    /// A freshly initialized model for `recipe`.
+    pub fn init(recipe: &Recipe, device: &Device) -> Result<Self, Error> {
+        device.seed(recipe.seed);
+        Ok(match recipe.objective {
+            ObjectiveKind::Mae => Trainee::Mae(recipe.mae_config()?.init(device)),
+            ObjectiveKind::Dino => Trainee::Dino(recipe.dino_config()?.init(device)),
+            ObjectiveKind::Ijepa | ObjectiveKind::Vjepa => {
+                Trainee::Jepa(recipe.jepa_config()?.init(device))
+            }
+        })
+    }
+
+    /// The encoder being pretrained.
+    pub fn encoder(&self) -> &Vit {
+        match self {
+            Trainee::Mae(m) => &m.encoder,
+            Trainee::Dino(m) => &m.encoder,
+            Trainee::Jepa(m) => &m.encoder,
+        }
+    }
+
+    /// Loss of step `step` on `x`, with masks / views drawn from `(seed, step)`; for DINO also
+    /// the teacher mean for the centre update.
+    pub fn loss(
+        &self,
+        recipe: &Recipe,
+        x: Tensor<5>,
+        step: usize,
+    ) -> (Tensor<1>, Option<Tensor<2>>) {
+        let mut rng = Rng::for_step(recipe.seed, step as u64, 1);
+        let b = x.dims()[0];
+        let enc = recipe.encoder_config().expect("validated recipe");
+        let [gt, gh, gw] = enc.grid();
+        match self {
+            Trainee::Mae(m) => {
+                let mask = mae_mask(&mut rng, b, enc.num_patches(), recipe.mae.mask_ratio);
+                (m.loss(x, &mask), None)
+            }
+            Trainee::Dino(m) => {
+                let views = dino_views(&mut rng, b, gh * gt, gw, &recipe.dino.views);
+                let d = &recipe.dino;
+                let t = d.teacher_temp[0]
+                    + (d.teacher_temp[1] - d.teacher_temp[0])
+                        * (step as f64 / d.teacher_temp_warmup_steps.max(1) as f64).min(1.0);
+                let (loss, mean) = m.loss(x, &views, t);
+                (loss, Some(mean))
+            }
+            Trainee::Jepa(m) => {
+                let sets = if recipe.objective == ObjectiveKind::Vjepa {
+                    recipe
+                        .jepa
+                        .tube_masks
+                        .iter()
+                        .map(|c| tube_masks(&mut rng, b, [gt, gh, gw], c))
+                        .collect()
+                } else {
+                    vec![ijepa_masks(&mut rng, b, gh, gw, &recipe.jepa.masks)]
+                };
+                (m.loss(x, &sets), None)
+            }
+        }
+    }
+
+    /// Updates after the optimizer step of `step`: teacher / target EMA, DINO centre.
+    pub fn after_step(self, recipe: &Recipe, step: usize, aux: Option<Tensor<2>>) -> Self {
+        let total = recipe.optim.steps;
+        match self {
+            Trainee::Mae(m) => Trainee::Mae(m),
+            Trainee::Dino(m) => {
+                let [a, b] = recipe.dino.ema;
+                let mean = aux.expect("DINO reports its teacher mean");
+                Trainee::Dino(m.after_step(momentum_at(a, b, step, total), mean))
+            }
+            Trainee::Jepa(m) => {
+                let [a, b] = recipe.jepa.ema;
+                Trainee::Jepa(m.after_step(momentum_at(a, b, step, total)))
+            }
+        }
+    }
+
+    fn optimize(self, optim: &mut burn::optim::ModuleOptimizer, lr: f64, loss: &Tensor<1>) -> Self {
+        let grads = loss.backward();
+        match self {
+            Trainee::Mae(m) => {
+                let g = GradientsParams::from_grads(grads, &m);
+                Trainee::Mae(optim.step(lr, m, g))
+            }
+            Trainee::Dino(m) => {
+                let g = GradientsParams::from_grads(grads, &m);
+                Trainee::Dino(optim.step(lr, m, g))
+            }
+            Trainee::Jepa(m) => {
+                let g = GradientsParams::from_grads(grads, &m);
+                Trainee::Jepa(optim.step(lr, m, g))
+            }
+        }
+    }
+
+    /// One full training step on a host batch: loss, backward, AdamW, EMA. Returns the loss.
+    pub fn train_step(
+        self,
+        recipe: &Recipe,
+        optim: &mut burn::optim::ModuleOptimizer,
+        batch: &HostBatch,
+        device: &Device,
+    ) -> (Self, f64) {
+        let x = Tensor::<1>::from_floats(batch.values.as_slice(), device).reshape(batch.shape);
+        let (loss, aux) = self.loss(recipe, x, batch.step);
+        let value = loss.clone().into_scalar::<f32>() as f64;
+        let lr = recipe.optim.lr_at(batch.step);
+        let next = self.optimize(optim, lr, &loss);
+        (next.after_step(recipe, batch.step, aux), value)
+    }
+
+    fn save(&self, path: &Path) -> Result<(), Error> {
+        let r = match self {
+            Trainee::Mae(m) => m.clone().save_file(path),
+            Trainee::Dino(m) => m.clone().save_file(path),
+            Trainee::Jepa(m) => m.clone().save_file(path),
+        };
+        r.map_err(|e| Error::file(path, e))
+    }
+
+    fn load(self, path: &Path) -> Result<Self, Error> {
+        let err = |e: burn::store::RecordError| {
+            Error::file(
+                path,
+                format!("{e} (truncated file or another architecture?)"),
+            )
+        };
+        Ok(match self {
+            Trainee::Mae(m) => Trainee::Mae(m.try_load_file(path).map_err(err)?),
+            Trainee::Dino(m) => Trainee::Dino(m.try_load_file(path).map_err(err)?),
+            Trainee::Jepa(m) => Trainee::Jepa(m.try_load_file(path).map_err(err)?),
+        })
+    }
+}
+
+/// The AdamW optimizer of a recipe.
+pub fn optimizer(recipe: &Recipe) -> burn::optim::ModuleOptimizer {
+    AdamWConfig::new()
+        .with_weight_decay(recipe.optim.weight_decay as f32)
+        .with_epsilon(1e-8)
+        .init()
+}
+
+/// Options of one run beyond its recipe.
+#[derive(Debug, Clone)]
+pub struct RunOptions {
+    /// Dataset directories (generated or Sparsh pickles).
+    pub data: Vec<PathBuf>,
+    /// Run directory.
+    pub out: PathBuf,
+    /// Continue the run in `out` from its checkpoint.
+    pub resume: bool,
+    /// Stop after this many steps in total (the schedule still spans `optim.steps`).
+    pub max_steps: Option<usize>,
+}
+
+#[derive(serde::Serialize, serde::Deserialize)]
+struct State {
+    step: usize,
+    objective: ObjectiveKind,
+}
+
+/// Summary of a finished (or stopped) run.
+#[derive(Debug, Clone)]
+pub struct RunSummary {
+    /// Steps completed in total.
+    pub steps: usize,
+    /// Loss of the last step.
+    pub last_loss: f64,
+    /// Probe on the initial (random) encoder, if the data have force labels.
+    pub probe_initial: Option<ProbeScore>,
+    /// Probe on the final encoder.
+    pub probe_final: Option<ProbeScore>,
+    /// Mean seconds per step of this invocation.
+    pub mean_step_s: f64,
+    /// Mean seconds per step spent waiting for data.
+    pub mean_wait_s: f64,
+}
+
+/// Loads and concatenates the datasets of a run.
+pub fn load_data(recipe: &Recipe, dirs: &[PathBuf]) -> Result<Dataset, Error> {
+    let size = recipe.encoder.img_size;
+    let mut all = Dataset {
+        sequences: Vec::new(),
+        size,
+    };
+    if dirs.is_empty() {
+        return Err(Error::Data("no --data directory given".into()));
+    }
+    for d in dirs {
+        all.sequences.extend(Dataset::load(d, size)?.sequences);
+    }
+    Ok(all)
+}
+
+fn csv_header() -> &'static str {
+    "step,loss,lr,probe_rmse_mn,probe_baseline_mn,wait_s,step_s\n"
+}
+
+fn csv_row(r: &StepReport, probe_only: bool) -> String {
+    let (p, b) = r.probe.map_or((String::new(), String::new()), |p| {
+        (format!("{:.3}", p.rmse_mn), format!("{:.3}", p.baseline_mn))
+    });
+    if probe_only {
+        format!("{},,,{p},{b},,\n", r.step)
+    } else {
+        format!(
+            "{},{:.6},{:.6e},{p},{b},{:.4},{:.4}\n",
+            r.step, r.loss, r.lr, r.wait_s, r.step_s
+        )
+    }
+}
+
+/// Keeps the log rows of steps before `step` (a resumed run rewrites the rest).
+fn truncate_log(path: &Path, step: usize) -> Result<String, Error> {
+    let text = std::fs::read_to_string(path).unwrap_or_default();
+    let mut out = String::from(csv_header());
+    for line in text.lines().skip(1) {
+        let s: usize = line
+            .split(',')
+            .next()
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(usize::MAX);
+        let probe_only = line.split(',').nth(1) == Some("");
+        if s < step || (s == step && probe_only) {
+            out.push_str(line);
+            out.push('\n');
+        }
+    }
+    Ok(out)
+}
+
+/// Runs (or resumes) a pretraining run; `on_step` sees every step's report.
+pub fn run(
+    recipe: &Recipe,
+    opts: &RunOptions,
+    on_step: &mut dyn FnMut(&StepReport),
+) -> Result<RunSummary, Error> {
+    recipe.validate()?;
+    let device = Device::flex().autodiff();
+    let ckpt = opts.out.join("checkpoint");
+    if !opts.resume && ckpt.exists() {
+        return Err(Error::file(
+            &opts.out,
+            "already holds a run; pass --resume or choose another --out",
+        ));
+    }
+    if opts.resume && !ckpt.join("state.json").is_file() {
+        return Err(Error::file(&ckpt, "no checkpoint to resume from"));
+    }
+    std::fs::create_dir_all(&opts.out).map_err(|e| Error::file(&opts.out, e))?;
+    let data = Arc::new(load_data(recipe, &opts.data)?);
+    let sampler = Sampler::new(data, recipe.stacking())?;
+    let probe_set = if recipe.log.probe_every > 0 {
+        ProbeSet::new(
+            &sampler,
+            recipe.log.probe_max_samples,
+            recipe.optim.batch_size,
+        )
+    } else {
+        None
+    };
+
+    let mut model = Trainee::init(recipe, &device)?;
+    let mut optim = optimizer(recipe);
+    let mut start = 0;
+    let log_path = opts.out.join("log.csv");
+    let mut log_text = String::from(csv_header());
+    if opts.resume {
+        let state_path = ckpt.join("state.json");
+        let text = std::fs::read_to_string(&state_path).map_err(|e| Error::file(&state_path, e))?;
+        let state: State = serde_json::from_str(&text).map_err(|e| Error::file(&state_path, e))?;
+        if state.objective != recipe.objective {
+            return Err(Error::file(
+                &state_path,
+                format!(
+                    "checkpoint is {:?}, the recipe is {:?}",
+                    state.objective, recipe.objective
+                ),
+            ));
+        }
+        model = model.load(&ckpt.join("model.bpk"))?;
+        let op = ckpt.join("optim.bpk");
+        optim = optim
+            .load(&op)
+            .map_err(|e| Error::file(&op, format!("{e} (truncated file?)")))?;
+        start = state.step;
+        log_text = truncate_log(&log_path, start)?;
+    } else {
+        let text = toml::to_string(recipe).map_err(|e| Error::Config(e.to_string()))?;
+        write_atomic(&opts.out.join("recipe.toml"), text.as_bytes())?;
+    }
+    let total = recipe.optim.steps;
+    let end = opts.max_steps.map_or(total, |m| m.min(total));
+    let mut log = std::fs::File::create(&log_path).map_err(|e| Error::file(&log_path, e))?;
+    log.write_all(log_text.as_bytes())
+        .map_err(|e| Error::file(&log_path, e))?;
+
+    let rx = sampler.prefetch(
+        recipe.data.augment.clone(),
+        recipe.seed,
+        recipe.optim.batch_size,
+        start,
+        end,
+        recipe.data.prefetch,
+    );
+    let probe_at =
+        |step: usize| recipe.log.probe_every > 0 && step.is_multiple_of(recipe.log.probe_every);
+    let mut summary = RunSummary {
+        steps: start,
+        last_loss: f64::NAN,
+        probe_initial: None,
+        probe_final: None,
+        mean_step_s: 0.0,
+        mean_wait_s: 0.0,
+    };
+    let (mut sum_step, mut sum_wait) = (0.0, 0.0);
+    for step in start..end {
+        let t0 = Instant::now();
+        let probe = match &probe_set {
+            Some(p) if probe_at(step) => Some(p.score(model.encoder())),
+            _ => None,
+        };
+        if step == 0 {
+            summary.probe_initial = probe;
+        }
+        let tw = Instant::now();
+        let batch = rx
+            .recv()
+            .map_err(|_| Error::Data("the batch loader stopped".into()))?;
+        let wait_s = tw.elapsed().as_secs_f64();
+        let (next, loss) = model.train_step(recipe, &mut optim, &batch, &device);
+        model = next;
+        if !loss.is_finite() {
+            return Err(Error::Data(format!("loss is {loss} at step {step}")));
+        }
+        let report = StepReport {
+            step,
+            total,
+            loss,
+            lr: recipe.optim.lr_at(step),
+            wait_s,
+            step_s: t0.elapsed().as_secs_f64(),
+            probe,
+        };
+        if probe.is_some() {
+            log.write_all(csv_row(&report, true).as_bytes())
+                .map_err(|e| Error::file(&log_path, e))?;
+        }
+        log.write_all(csv_row(&report, false).as_bytes())
+            .map_err(|e| Error::file(&log_path, e))?;
+        on_step(&report);
+        sum_step += report.step_s;
+        sum_wait += wait_s;
+        summary.steps = step + 1;
+        summary.last_loss = loss;
+        if (step + 1) % recipe.log.checkpoint_every == 0 || step + 1 == end {
+            log.flush().map_err(|e| Error::file(&log_path, e))?;
+            checkpoint(&model, &optim, recipe, step + 1, &opts.out)?;
+        }
+    }
+    let ran = end.saturating_sub(start).max(1) as f64;
+    summary.mean_step_s = sum_step / ran;
+    summary.mean_wait_s = sum_wait / ran;
+    if end == total {
+        if let Some(p) = &probe_set {
+            let score = p.score(model.encoder());
+            summary.probe_final = Some(score);
+            let report = StepReport {
+                step: total,
+                total,
+                loss: f64::NAN,
+                lr: 0.0,
+                wait_s: 0.0,
+                step_s: 0.0,
+                probe: Some(score),
+            };
+            log.write_all(csv_row(&report, true).as_bytes())
+                .map_err(|e| Error::file(&log_path, e))?;
+            on_step(&report);
+        }
+        crate::weights::save_encoder(model.encoder(), &opts.out.join("encoder.safetensors"))?;
+    }
+    log.flush().map_err(|e| Error::file(&log_path, e))?;
+    Ok(summary)
+}
+
+fn checkpoint(
+    model: &Trainee,
+    optim: &burn::optim::ModuleOptimizer,
+    recipe: &Recipe,
+    step: usize,
+    out: &Path,
+) -> Result<(), Error> {
+    let tmp = out.join("checkpoint.tmp");
+    let dst = out.join("checkpoint");
+    let old = out.join("checkpoint.old");
+    if tmp.exists() {
+        std::fs::remove_dir_all(&tmp).map_err(|e| Error::file(&tmp, e))?;
+    }
+    std::fs::create_dir_all(&tmp).map_err(|e| Error::file(&tmp, e))?;
+    model.save(&tmp.join("model.bpk"))?;
+    let op = tmp.join("optim.bpk");
+    optim.save(&op).map_err(|e| Error::file(&op, e))?;
+    crate::weights::save_encoder(model.encoder(), &tmp.join("encoder.safetensors"))?;
+    let state = State {
+        step,
+        objective: recipe.objective,
+    };
+    let json = serde_json::to_string(&state).map_err(|e| Error::Data(e.to_string()))?;
+    std::fs::write(tmp.join("state.json"), json).map_err(|e| Error::file(&tmp, e))?;
+    if old.exists() {
+        std::fs::remove_dir_all(&old).map_err(|e| Error::file(&old, e))?;
+    }
+    if dst.exists() {
+        std::fs::rename(&dst, &old).map_err(|e| Error::file(&dst, e))?;
+    }
+    std::fs::rename(&tmp, &dst).map_err(|e| Error::file(&dst, e))?;
+    if old.exists() {
+        std::fs::remove_dir_all(&old).map_err(|e| Error::file(&old, e))?;
+    }
+    Ok(())
+}

@@ -1,0 +1,516 @@
+//! The Vision Transformer encoder of Sparsh: no `[cls]` token, fixed sinusoidal position
+//! embeddings, optional register tokens, layer-normalized tokens out.
+//!
+//! Inputs are clips `[batch, frames, channels, height, width]`. The image objectives use one
+//! "frame" of 6 channels (I_t ⊕ I_{t−5}); V-JEPA uses 4 frames of 3 channels cut into tubelets of
+//! 2 frames. A patch (tubelet) is flattened in the order `(channel, frame, row, column)`, the order
+//! of the official `Conv2d`/`Conv3d` patch-embedding weights `[dim, C, (t,) p, p]`, so the
+//! patch embedding is a [`Linear`] on flattened patches.
+
+use burn::module::Param;
+use burn::nn::{LayerNorm, LayerNormConfig, Linear, LinearConfig};
+use burn::prelude::*;
+use burn::tensor::activation::gelu;
+use burn::tensor::module::attention;
+use burn::tensor::ops::AttentionModuleOptions;
+
+use crate::Error;
+
+/// Layer-norm epsilon of the official encoder (DINOv2-style blocks).
+pub const LN_EPS: f64 = 1e-6;
+
+/// Configuration of a [`Vit`].
+#[derive(Config, Debug)]
+pub struct VitConfig {
+    /// Input size `[height, width]` in pixels (official: `[320, 240]`, portrait).
+    pub img_size: [usize; 2],
+    /// Patch side in pixels (official: 16).
+    pub patch_size: usize,
+    /// Channels per frame (6 for I_t ⊕ I_{t−5}, 3 for V-JEPA clips).
+    #[config(default = 6)]
+    pub in_chans: usize,
+    /// Frames per clip (1 for images, 4 for V-JEPA).
+    #[config(default = 1)]
+    pub num_frames: usize,
+    /// Frames per tubelet (1 for images, 2 for V-JEPA).
+    #[config(default = 1)]
+    pub tubelet_size: usize,
+    /// Token width.
+    #[config(default = 192)]
+    pub embed_dim: usize,
+    /// Number of transformer blocks.
+    #[config(default = 12)]
+    pub depth: usize,
+    /// Attention heads.
+    #[config(default = 3)]
+    pub num_heads: usize,
+    /// Hidden width of the MLP as a multiple of `embed_dim`.
+    #[config(default = 4.0)]
+    pub mlp_ratio: f64,
+    /// Register tokens prepended to the patch tokens (DINO uses one as its `[cls]`).
+    #[config(default = 0)]
+    pub num_registers: usize,
+}
+
+/// Named encoder sizes of the official code (`vit_tiny`, `vit_small`, `vit_base`).
+pub fn size_preset(name: &str) -> Option<(usize, usize, usize)> {
+    match name {
+        "tiny" => Some((192, 12, 3)),
+        "small" => Some((384, 12, 6)),
+        "base" => Some((768, 12, 12)),
+        _ => None,
+    }
+}
+
+impl VitConfig {
+    /// Patch grid `[frames / tubelet, height / patch, width / patch]`.
+    pub fn grid(&self) -> [usize; 3] {
+        [
+            self.num_frames / self.tubelet_size,
+            self.img_size[0] / self.patch_size,
+            self.img_size[1] / self.patch_size,
+        ]
+    }
+
+    /// Number of patch (tubelet) tokens.
+    pub fn num_patches(&self) -> usize {
+        self.grid().iter().product()
+    }
+
+    /// Values in one flattened patch: `channels · tubelet · patch²`.
+    pub fn patch_dim(&self) -> usize {
+        self.in_chans * self.tubelet_size * self.patch_size * self.patch_size
+    }
+
+    /// Checks the shapes; the error names the offending field.
+    pub fn validate(&self) -> Result<(), Error> {
+        let bad = |field: &str, why: String| Err(Error::Config(format!("{field}: {why}")));
+        if self.patch_size == 0 || self.tubelet_size == 0 || self.num_heads == 0 {
+            return bad(
+                "patch_size/tubelet_size/num_heads",
+                "must be positive".into(),
+            );
+        }
+        for (i, name) in ["height", "width"].iter().enumerate() {
+            if self.img_size[i] == 0 || !self.img_size[i].is_multiple_of(self.patch_size) {
+                return bad(
+                    "img_size",
+                    format!(
+                        "{name} {} is not a positive multiple of patch_size {}",
+                        self.img_size[i], self.patch_size
+                    ),
+                );
+            }
+        }
+        if self.num_frames == 0 || !self.num_frames.is_multiple_of(self.tubelet_size) {
+            return bad(
+                "num_frames",
+                format!(
+                    "{} is not a positive multiple of tubelet_size {}",
+                    self.num_frames, self.tubelet_size
+                ),
+            );
+        }
+        if self.embed_dim == 0 || !self.embed_dim.is_multiple_of(self.num_heads) {
+            return bad(
+                "embed_dim",
+                format!(
+                    "{} is not a positive multiple of num_heads {}",
+                    self.embed_dim, self.num_heads
+                ),
+            );
+        }
+        if !self.embed_dim.is_multiple_of(8) {
+            return bad(
+                "embed_dim",
+                format!(
+                    "{} must be a multiple of 8 (sinusoidal embeddings)",
+                    self.embed_dim
+                ),
+            );
+        }
+        Ok(())
+    }
+
+    /// Initialize a [`Vit`] (call [`validate`](Self::validate) first on user input).
+    pub fn init(&self, device: &Device) -> Vit {
+        let d = self.embed_dim;
+        let registers = (self.num_registers > 0).then(|| {
+            Param::from_tensor(Tensor::random(
+                [1, self.num_registers, d],
+                burn::tensor::Distribution::Normal(0.0, 1e-6),
+                device,
+            ))
+        });
+        Vit {
+            patch_embed: LinearConfig::new(self.patch_dim(), d).init(device),
+            register_tokens: registers,
+            blocks: (0..self.depth)
+                .map(|_| BlockConfig::new(d, self.num_heads, self.mlp_ratio).init(device))
+                .collect(),
+            norm: LayerNormConfig::new(d).with_epsilon(LN_EPS).init(device),
+            pos_embed: sincos_tensor(d, self.grid(), device),
+            patch_size: self.patch_size,
+            tubelet_size: self.tubelet_size,
+        }
+    }
+}
+
+/// Fixed sinusoidal position embedding as a `[1, tokens, dim]` tensor (see [`sincos_embedding`]).
+pub fn sincos_tensor(dim: usize, grid: [usize; 3], device: &Device) -> Tensor<3> {
+    let n = grid.iter().product::<usize>();
+    Tensor::<1>::from_floats(sincos_embedding(dim, grid).as_slice(), device).reshape([1, n, dim])
+}
+
+/// 1-D sinusoidal embedding of positions `pos` into `dim` values (MAE / I-JEPA convention):
+/// `ω_i = 10000^(−i/(dim/2))`, `[sin(p·ω_0..), cos(p·ω_0..)]`.
+fn sincos_1d(dim: usize, pos: f64, out: &mut Vec<f32>) {
+    let half = dim / 2;
+    let omega = |i: usize| 1.0 / 10000f64.powf(i as f64 / half as f64);
+    out.extend((0..half).map(|i| (pos * omega(i)).sin() as f32));
+    out.extend((0..half).map(|i| (pos * omega(i)).cos() as f32));
+}
+
+/// Fixed sinusoidal position embeddings, row-major over `grid = [frames, rows, columns]`.
+///
+/// ```text
+/// 2-D (frames = 1): [emb_{dim/2}(column), emb_{dim/2}(row)]        (MAE get_2d_sincos_pos_embed)
+/// 3-D (frames > 1): [emb_{dim/2}(frame), emb_{dim/4}(row), emb_{dim/4}(column)]   (V-JEPA)
+/// ```
+/// Checkpoints carry their own `pos_embed`, which [`crate::weights`] loads in place of this one.
+pub fn sincos_embedding(dim: usize, grid: [usize; 3]) -> Vec<f32> {
+    let [gt, gh, gw] = grid;
+    let mut out = Vec::with_capacity(gt * gh * gw * dim);
+    for t in 0..gt {
+        for r in 0..gh {
+            for c in 0..gw {
+                if gt == 1 {
+                    sincos_1d(dim / 2, c as f64, &mut out);
+                    sincos_1d(dim / 2, r as f64, &mut out);
+                } else {
+                    sincos_1d(dim / 2, t as f64, &mut out);
+                    sincos_1d(dim / 4, r as f64, &mut out);
+                    sincos_1d(dim / 4, c as f64, &mut out);
+                }
+            }
+        }
+    }
+    out
+}
+
+/// Cuts clips into flattened patches (tubelets).
+///
+/// # Shapes
+/// - `x`: `[batch, frames, channels, height, width]`
+/// - output: `[batch, tokens, channels · tubelet · patch²]`, tokens row-major over
+///   `(frame / tubelet, row, column)`, values in `(channel, frame, row, column)` order.
+pub fn patchify(x: Tensor<5>, patch: usize, tubelet: usize) -> Tensor<3> {
+    let [b, t, c, h, w] = x.dims();
+    let (gt, gh, gw) = (t / tubelet, h / patch, w / patch);
+    x.reshape([b, gt, tubelet, c, gh, patch, gw, patch])
+        .permute([0, 1, 4, 6, 3, 2, 5, 7])
+        .reshape([b, gt * gh * gw, c * tubelet * patch * patch])
+}
+
+/// Picks tokens per sample.
+///
+/// # Shapes
+/// - `x`: `[batch, tokens, dim]`, `idx`: `[batch, k]` → `[batch, k, dim]`
+pub fn gather_tokens(x: Tensor<3>, idx: Tensor<2, Int>) -> Tensor<3> {
+    let [b, k] = idx.dims();
+    let d = x.dims()[2];
+    x.gather(1, idx.reshape([b, k, 1]).repeat_dim(2, d))
+}
+
+/// Index rows as an integer tensor `[rows, k]` (all rows must have the same length).
+pub fn index_tensor(rows: &[Vec<usize>], device: &Device) -> Tensor<2, Int> {
+    let k = rows.first().map_or(0, Vec::len);
+    let flat: Vec<i64> = rows.iter().flatten().map(|&i| i as i64).collect();
+    Tensor::<1, Int>::from_data(TensorData::new(flat, [rows.len() * k]), device)
+        .reshape([rows.len(), k])
+}
+
+/// Configuration of a multi-head self-attention layer.
+#[derive(Config, Debug)]
+pub struct AttentionConfig {
+    /// Token width.
+    pub dim: usize,
+    /// Heads.
+    pub num_heads: usize,
+}
+
+/// Multi-head self-attention with one fused `qkv` projection (official key names).
+#[derive(Module, Debug)]
+pub struct Attention {
+    /// `[dim, 3·dim]` projection to queries, keys and values.
+    pub qkv: Linear,
+    /// Output projection.
+    pub proj: Linear,
+    /// Heads.
+    pub num_heads: usize,
+}
+
+impl AttentionConfig {
+    /// Initialize an [`Attention`].
+    pub fn init(&self, device: &Device) -> Attention {
+        Attention {
+            qkv: LinearConfig::new(self.dim, 3 * self.dim).init(device),
+            proj: LinearConfig::new(self.dim, self.dim).init(device),
+            num_heads: self.num_heads,
+        }
+    }
+}
+
+impl Attention {
+    /// `proj(softmax(q kᵀ / √d_head) v)` per head.
+    ///
+    /// # Shapes
+    /// - `x`: `[batch, tokens, dim]` → `[batch, tokens, dim]`
+    pub fn forward(&self, x: Tensor<3>) -> Tensor<3> {
+        let [b, n, d] = x.dims();
+        let h = self.num_heads;
+        let qkv = self
+            .qkv
+            .forward(x)
+            .reshape([b, n, 3, h, d / h])
+            .permute([2, 0, 3, 1, 4]);
+        let part = |i: usize| qkv.clone().narrow(0, i, 1).reshape([b, h, n, d / h]);
+        let out = attention(
+            part(0),
+            part(1),
+            part(2),
+            None,
+            None,
+            AttentionModuleOptions::default(),
+        );
+        self.proj.forward(out.swap_dims(1, 2).reshape([b, n, d]))
+    }
+}
+
+/// Configuration of a pre-norm transformer block.
+#[derive(Config, Debug)]
+pub struct BlockConfig {
+    /// Token width.
+    pub dim: usize,
+    /// Heads.
+    pub num_heads: usize,
+    /// MLP hidden width as a multiple of `dim`.
+    pub mlp_ratio: f64,
+}
+
+/// The two-layer GELU MLP of a block (`fc1`, `fc2`).
+#[derive(Module, Debug)]
+pub struct Mlp {
+    /// First layer.
+    pub fc1: Linear,
+    /// Second layer.
+    pub fc2: Linear,
+}
+
+/// Pre-norm transformer block: `x + attn(norm1 x)`, then `x + mlp(norm2 x)`.
+#[derive(Module, Debug)]
+pub struct Block {
+    /// Norm before attention.
+    pub norm1: LayerNorm,
+    /// Self-attention.
+    pub attn: Attention,
+    /// Norm before the MLP.
+    pub norm2: LayerNorm,
+    /// MLP.
+    pub mlp: Mlp,
+}
+
+impl BlockConfig {
+    /// Initialize a [`Block`].
+    pub fn init(&self, device: &Device) -> Block {
+        let hidden = (self.dim as f64 * self.mlp_ratio) as usize;
+        Block {
+            norm1: LayerNormConfig::new(self.dim)
+                .with_epsilon(LN_EPS)
+                .init(device),
+            attn: AttentionConfig::new(self.dim, self.num_heads).init(device),
+            norm2: LayerNormConfig::new(self.dim)
+                .with_epsilon(LN_EPS)
+                .init(device),
+            mlp: Mlp {
+                fc1: LinearConfig::new(self.dim, hidden).init(device),
+                fc2: LinearConfig::new(hidden, self.dim).init(device),
+            },
+        }
+    }
+}
+
+impl Block {
+    /// One block.
+    ///
+    /// # Shapes
+    /// - `x`: `[batch, tokens, dim]` → `[batch, tokens, dim]`
+    pub fn forward(&self, x: Tensor<3>) -> Tensor<3> {
+        let x = x.clone() + self.attn.forward(self.norm1.forward(x));
+        let y = self
+            .mlp
+            .fc2
+            .forward(gelu(self.mlp.fc1.forward(self.norm2.forward(x.clone()))));
+        x + y
+    }
+}
+
+/// The encoder's output: layer-normalized tokens.
+#[derive(Debug, Clone)]
+pub struct VitOutput {
+    /// Patch tokens `[batch, kept tokens, dim]`.
+    pub patches: Tensor<3>,
+    /// Register tokens `[batch, registers, dim]` (`None` without registers).
+    pub registers: Option<Tensor<3>>,
+}
+
+/// The Sparsh Vision Transformer encoder.
+#[derive(Module, Debug)]
+pub struct Vit {
+    /// Patch embedding on flattened patches, weight `[patch_dim, dim]`.
+    pub patch_embed: Linear,
+    /// Register tokens `[1, registers, dim]`.
+    pub register_tokens: Option<Param<Tensor<3>>>,
+    /// Transformer blocks.
+    pub blocks: Vec<Block>,
+    /// Final norm.
+    pub norm: LayerNorm,
+    /// Fixed position embedding `[1, tokens, dim]` (not trained).
+    #[module(skip)]
+    pub pos_embed: Tensor<3>,
+    /// Patch side.
+    #[module(skip)]
+    pub patch_size: usize,
+    /// Tubelet length.
+    #[module(skip)]
+    pub tubelet_size: usize,
+}
+
+impl Vit {
+    /// Token width.
+    pub fn dim(&self) -> usize {
+        self.pos_embed.dims()[2]
+    }
+
+    /// Patch tokens with position embeddings, before the blocks.
+    ///
+    /// # Shapes
+    /// - `x`: `[batch, frames, channels, height, width]` → `[batch, tokens, dim]`
+    pub fn embed(&self, x: Tensor<5>) -> Tensor<3> {
+        let device = x.device();
+        let tokens = self
+            .patch_embed
+            .forward(patchify(x, self.patch_size, self.tubelet_size));
+        tokens + self.pos_embed.clone().to_device(&device)
+    }
+
+    /// Encodes clips, optionally keeping only the tokens `keep` (masked encoding).
+    ///
+    /// # Shapes
+    /// - `x`: `[batch, frames, channels, height, width]`
+    /// - `keep`: `[batch, k]` token indices (all tokens when `None`)
+    /// - output patches: `[batch, k, dim]`; registers `[batch, registers, dim]`
+    pub fn forward(&self, x: Tensor<5>, keep: Option<Tensor<2, Int>>) -> VitOutput {
+        let tokens = self.embed(x);
+        let tokens = match keep {
+            Some(idx) => gather_tokens(tokens, idx),
+            None => tokens,
+        };
+        self.forward_tokens(tokens)
+    }
+
+    /// Runs registers + blocks + norm on already embedded tokens `[batch, k, dim]`.
+    pub fn forward_tokens(&self, tokens: Tensor<3>) -> VitOutput {
+        let [b, _, d] = tokens.dims();
+        let r = self.register_tokens.as_ref().map_or(0, |p| p.dims()[1]);
+        let mut x = match &self.register_tokens {
+            Some(reg) => Tensor::cat(vec![reg.val().expand([b, r, d]), tokens], 1),
+            None => tokens,
+        };
+        for block in &self.blocks {
+            x = block.forward(x);
+        }
+        let x = self.norm.forward(x);
+        let n = x.dims()[1];
+        VitOutput {
+            registers: (r > 0).then(|| x.clone().narrow(1, 0, r)),
+            patches: x.narrow(1, r, n - r),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn patchify_puts_each_pixel_in_its_patch_and_order() {
+        let device = Device::flex();
+        // value encodes (t, c, y, x)
+        let (t, c, h, w) = (2, 3, 4, 6);
+        let vals: Vec<f32> = (0..t * c * h * w).map(|i| i as f32).collect();
+        let x = Tensor::<1>::from_floats(vals.as_slice(), &device).reshape([1, t, c, h, w]);
+        let p = patchify(x, 2, 2);
+        assert_eq!(p.dims(), [1, 6, 3 * 2 * 2 * 2]);
+        let data = p.into_data().try_to_vec::<f32>().unwrap();
+        let pd = 24;
+        for tok in 0..6 {
+            let (pr, pc) = (tok / 3, tok % 3);
+            for ci in 0..3 {
+                for ti in 0..2 {
+                    for yy in 0..2 {
+                        for xx in 0..2 {
+                            let k = ((ci * 2 + ti) * 2 + yy) * 2 + xx;
+                            let want = (((ti * c + ci) * h + pr * 2 + yy) * w + pc * 2 + xx) as f32;
+                            assert_eq!(data[tok * pd + k], want);
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn sincos_rows_are_distinct_and_bounded() {
+        let e = sincos_embedding(16, [1, 3, 4]);
+        assert_eq!(e.len(), 12 * 16);
+        assert!(e.iter().all(|v| v.abs() <= 1.0));
+        // position (0,0): sin terms 0, cos terms 1
+        assert_eq!(&e[0..4], &[0.0; 4]);
+        assert_eq!(&e[4..8], &[1.0; 4]);
+        for a in 0..12 {
+            for b in a + 1..12 {
+                assert_ne!(e[a * 16..(a + 1) * 16], e[b * 16..(b + 1) * 16]);
+            }
+        }
+    }
+
+    #[test]
+    fn config_rejects_indivisible_image() {
+        let cfg = VitConfig::new([30, 24], 8);
+        let err = cfg.validate().unwrap_err().to_string();
+        assert!(err.contains("img_size"), "{err}");
+    }
+
+    #[test]
+    fn encoder_shapes_with_registers_and_masking() {
+        let device = Device::flex();
+        let cfg = VitConfig::new([16, 12], 4)
+            .with_embed_dim(32)
+            .with_depth(2)
+            .with_num_heads(4)
+            .with_num_registers(2);
+        cfg.validate().unwrap();
+        let vit = cfg.init(&device);
+        let x = Tensor::<5>::random(
+            [2, 1, 6, 16, 12],
+            burn::tensor::Distribution::Default,
+            &device,
+        );
+        let out = vit.forward(x.clone(), None);
+        assert_eq!(out.patches.dims(), [2, 12, 32]);
+        assert_eq!(out.registers.unwrap().dims(), [2, 2, 32]);
+        let keep = index_tensor(&[vec![0, 5, 7], vec![11, 1, 2]], &device);
+        assert_eq!(vit.forward(x, Some(keep)).patches.dims(), [2, 3, 32]);
+    }
+}

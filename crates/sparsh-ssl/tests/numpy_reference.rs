@@ -1,0 +1,179 @@
+//! Parity of the encoder's forward pass with an independent NumPy ViT (`tests/numpy_vit.py`),
+//! weights passed through safetensors under the official key names. Skips, saying so, when
+//! `python3` with numpy is unavailable (`pip install numpy`).
+
+use std::path::Path;
+use std::process::Command;
+
+use burn::prelude::*;
+use safetensors::{Dtype, SafeTensors, tensor::TensorView};
+use sparsh_ssl::rng::Rng;
+use sparsh_ssl::vit::VitConfig;
+use sparsh_ssl::weights::{load_encoder, save_encoder};
+
+fn numpy_available() -> bool {
+    Command::new("python3")
+        .args(["-c", "import numpy"])
+        .output()
+        .is_ok_and(|o| o.status.success())
+}
+
+/// Random official-layout weights with the keys and shapes of `template`, plus `input`.
+fn randomize(template: &Path, out: &Path, input_shape: &[usize], seed: u64) -> Vec<f32> {
+    let bytes = std::fs::read(template).unwrap();
+    let st = SafeTensors::deserialize(&bytes).unwrap();
+    let mut rng = Rng::new(seed);
+    let mut normal = |scale: f64| {
+        let u = rng.uniform().max(1e-12);
+        let v = rng.uniform();
+        ((-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos() * scale) as f32
+    };
+    let mut tensors: Vec<(String, Vec<usize>, Vec<f32>)> = Vec::new();
+    for name in st.names() {
+        let t = st.tensor(name).unwrap();
+        let n: usize = t.shape().iter().product();
+        let values: Vec<f32> = if name == "pos_embed" {
+            t.data()
+                .chunks_exact(4)
+                .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+                .collect()
+        } else if name.contains("norm") && name.ends_with("weight") {
+            (0..n).map(|_| 1.0 + normal(0.2)).collect()
+        } else {
+            (0..n).map(|_| normal(0.3)).collect()
+        };
+        tensors.push((name.to_string(), t.shape().to_vec(), values));
+    }
+    let n: usize = input_shape.iter().product();
+    let input: Vec<f32> = (0..n).map(|_| normal(1.0)).collect();
+    tensors.push(("input".into(), input_shape.to_vec(), input.clone()));
+    let raw: Vec<Vec<u8>> = tensors
+        .iter()
+        .map(|(_, _, v)| v.iter().flat_map(|x| x.to_le_bytes()).collect())
+        .collect();
+    let views: Vec<(String, TensorView)> = tensors
+        .iter()
+        .zip(&raw)
+        .map(|((name, shape, _), b)| {
+            (
+                name.clone(),
+                TensorView::new(Dtype::F32, shape.clone(), b).unwrap(),
+            )
+        })
+        .collect();
+    std::fs::write(out, safetensors::serialize(views, None).unwrap()).unwrap();
+    input
+}
+
+fn check(cfg: VitConfig, seed: u64) {
+    let dir = tempfile::tempdir().unwrap();
+    let device = Device::flex();
+    let template = dir.path().join("template.safetensors");
+    let file = dir.path().join("weights.safetensors");
+    save_encoder(&cfg.init(&device), &template).unwrap();
+    let [h, w] = cfg.img_size;
+    let shape = [2, cfg.num_frames, cfg.in_chans, h, w];
+    let input = randomize(&template, &file, &shape, seed);
+
+    let vit = load_encoder(cfg.init(&device), &file, None).unwrap();
+    let x = Tensor::<1>::from_floats(input.as_slice(), &device).reshape(shape);
+    let out = vit.forward(x, None);
+    let mut parts = Vec::new();
+    if let Some(r) = out.registers {
+        parts.push(r);
+    }
+    parts.push(out.patches);
+    let ours = Tensor::cat(parts, 1)
+        .into_data()
+        .try_to_vec::<f32>()
+        .unwrap();
+
+    // save → load → save gives back the same tensors
+    let again = dir.path().join("again.safetensors");
+    save_encoder(&vit, &again).unwrap();
+    let (a, b) = (
+        std::fs::read(&file).unwrap(),
+        std::fs::read(&again).unwrap(),
+    );
+    let (sa, sb) = (
+        SafeTensors::deserialize(&a).unwrap(),
+        SafeTensors::deserialize(&b).unwrap(),
+    );
+    for name in sb.names() {
+        assert_eq!(
+            sa.tensor(name).unwrap().data(),
+            sb.tensor(name).unwrap().data(),
+            "{name}"
+        );
+    }
+
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/numpy_vit.py");
+    let run = Command::new("python3")
+        .arg(&script)
+        .arg(&file)
+        .arg(cfg.num_heads.to_string())
+        .output()
+        .unwrap();
+    assert!(
+        run.status.success(),
+        "numpy reference failed: {}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let reference: serde_json::Value = serde_json::from_slice(&run.stdout).unwrap();
+    let expect_shape: Vec<usize> = reference["shape"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_u64().unwrap() as usize)
+        .collect();
+    let r = cfg.num_registers;
+    assert_eq!(expect_shape, vec![2, r + cfg.num_patches(), cfg.embed_dim]);
+    let refv: Vec<f64> = reference["values"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_f64().unwrap())
+        .collect();
+    assert_eq!(refv.len(), ours.len());
+    let scale = refv.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    let err = ours
+        .iter()
+        .zip(&refv)
+        .fold(0.0f64, |m, (a, b)| m.max((*a as f64 - b).abs()));
+    assert!(err / scale <= 1e-4, "relative error {:.3e}", err / scale);
+    let pos_dev = reference["pos_dev"].as_f64().unwrap();
+    assert!(
+        pos_dev < 1e-5,
+        "position embedding differs from the formula by {pos_dev}"
+    );
+}
+
+#[test]
+fn encoder_matches_numpy_reference() {
+    if !numpy_available() {
+        eprintln!(
+            "skipping encoder_matches_numpy_reference: python3 with numpy not found (pip install numpy)"
+        );
+        return;
+    }
+    // image encoder: 6 channels, registers
+    check(
+        VitConfig::new([16, 12], 4)
+            .with_embed_dim(32)
+            .with_depth(2)
+            .with_num_heads(4)
+            .with_num_registers(2),
+        1,
+    );
+    // V-JEPA clip encoder: 4 frames of 3 channels, tubelets of 2
+    check(
+        VitConfig::new([16, 12], 4)
+            .with_in_chans(3)
+            .with_num_frames(4)
+            .with_tubelet_size(2)
+            .with_embed_dim(32)
+            .with_depth(2)
+            .with_num_heads(2),
+        2,
+    );
+}

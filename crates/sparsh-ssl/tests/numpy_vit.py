@@ -1,0 +1,108 @@
+"""Independent NumPy forward pass of the Sparsh ViT encoder, for the parity test.
+
+Reads a safetensors file holding the encoder under the official PyTorch key names plus an
+`input` tensor [batch, frames, channels, height, width]; prints JSON with the normalized output
+tokens (registers first) and the largest deviation of the file's `pos_embed` from the sinusoidal
+formula computed here (MAE 2-D / V-JEPA 3-D conventions).
+
+usage: python3 numpy_vit.py FILE NUM_HEADS
+"""
+import json
+import math
+import struct
+import sys
+
+import numpy as np
+
+
+def read_safetensors(path):
+    with open(path, "rb") as f:
+        data = f.read()
+    n = struct.unpack("<Q", data[:8])[0]
+    header = json.loads(data[8 : 8 + n])
+    base = 8 + n
+    out = {}
+    for key, info in header.items():
+        if key == "__metadata__":
+            continue
+        assert info["dtype"] == "F32", info["dtype"]
+        start, end = info["data_offsets"]
+        raw = np.frombuffer(data[base + start : base + end], dtype="<f4")
+        out[key] = raw.reshape(info["shape"]).astype(np.float64)
+    return out
+
+
+def sincos_1d(dim, pos):
+    omega = 1.0 / 10000 ** (np.arange(dim // 2, dtype=np.float64) / (dim / 2.0))
+    out = np.outer(pos.reshape(-1), omega)
+    return np.concatenate([np.sin(out), np.cos(out)], axis=1)
+
+
+def sincos(dim, gt, gh, gw):
+    t, r, c = np.meshgrid(np.arange(gt), np.arange(gh), np.arange(gw), indexing="ij")
+    if gt == 1:
+        return np.concatenate([sincos_1d(dim // 2, c), sincos_1d(dim // 2, r)], axis=1)
+    return np.concatenate(
+        [sincos_1d(dim // 2, t), sincos_1d(dim // 4, r), sincos_1d(dim // 4, c)], axis=1
+    )
+
+
+def layer_norm(x, w, b, eps=1e-6):
+    m = x.mean(-1, keepdims=True)
+    v = ((x - m) ** 2).mean(-1, keepdims=True)
+    return (x - m) / np.sqrt(v + eps) * w + b
+
+
+_erf = np.vectorize(math.erf)
+
+
+def gelu(x):
+    return 0.5 * x * (1.0 + _erf(x / math.sqrt(2.0)))
+
+
+def main():
+    weights = read_safetensors(sys.argv[1])
+    heads = int(sys.argv[2])
+    x = weights.pop("input")
+    pw = weights["patch_embed.proj.weight"]
+    if pw.ndim == 4:
+        pw = pw[:, :, None]
+    dim, _, t, p, _ = pw.shape
+    b, frames, _, height, width = x.shape
+    gt, gh, gw = frames // t, height // p, width // p
+    tokens = []
+    for it in range(gt):
+        for r in range(gh):
+            for c in range(gw):
+                patch = x[:, it * t : (it + 1) * t, :, r * p : (r + 1) * p, c * p : (c + 1) * p]
+                patch = patch.transpose(0, 2, 1, 3, 4)  # conv3d: [B, C, t, p, p]
+                tokens.append(np.einsum("bctyx,dctyx->bd", patch, pw))
+    h = np.stack(tokens, 1) + weights["patch_embed.proj.bias"]
+    pos_dev = float(np.abs(weights["pos_embed"][0] - sincos(dim, gt, gh, gw)).max())
+    h = h + weights["pos_embed"]
+    if "register_tokens" in weights:
+        reg = weights["register_tokens"]
+        h = np.concatenate([np.broadcast_to(reg, (b,) + reg.shape[1:]), h], 1)
+    i = 0
+    while f"blocks.{i}.norm1.weight" in weights:
+        w = lambda k: weights[f"blocks.{i}.{k}"]
+        y = layer_norm(h, w("norm1.weight"), w("norm1.bias"))
+        qkv = y @ w("attn.qkv.weight").T + w("attn.qkv.bias")
+        n, hd = h.shape[1], dim // heads
+        qkv = qkv.reshape(b, n, 3, heads, hd).transpose(2, 0, 3, 1, 4)
+        q, k, v = qkv[0], qkv[1], qkv[2]
+        a = q @ k.transpose(0, 1, 3, 2) / math.sqrt(hd)
+        a = np.exp(a - a.max(-1, keepdims=True))
+        a = a / a.sum(-1, keepdims=True)
+        o = (a @ v).transpose(0, 2, 1, 3).reshape(b, n, dim)
+        h = h + o @ w("attn.proj.weight").T + w("attn.proj.bias")
+        y = layer_norm(h, w("norm2.weight"), w("norm2.bias"))
+        y = gelu(y @ w("mlp.fc1.weight").T + w("mlp.fc1.bias"))
+        h = h + y @ w("mlp.fc2.weight").T + w("mlp.fc2.bias")
+        i += 1
+    h = layer_norm(h, weights["norm.weight"], weights["norm.bias"])
+    json.dump({"shape": list(h.shape), "values": h.ravel().tolist(), "pos_dev": pos_dev}, sys.stdout)
+
+
+if __name__ == "__main__":
+    main()
