@@ -1,0 +1,297 @@
+//! End-to-end tests of the `sparsh` command: scene file in, dataset out.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+use sha2::{Digest, Sha256};
+
+const SMALL_SCENE: &str = r#"
+seed = 11
+solver = "geometric"
+[sensor]
+preset = "digit"
+width_px = 80
+height_px = 60
+mm_per_px = 0.2
+fps = 10.0
+[gel]
+youngs_modulus_kpa = 300.0
+thickness_mm = 3.0
+[indenter]
+shape = "sphere"
+radius_mm = 6.0
+[[trajectory]]
+time_s = 0.0
+position_mm = [-1.0, 0.0, 0.2]
+[[trajectory]]
+time_s = 0.6
+position_mm = [-1.0, 0.0, -0.8]
+[[trajectory]]
+time_s = 1.2
+position_mm = [1.0, 0.0, -0.8]
+"#;
+
+fn sparsh(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_sparsh"))
+        .args(args)
+        .output()
+        .expect("sparsh runs")
+}
+
+fn write_scene(dir: &Path, text: &str) -> PathBuf {
+    let path = dir.join("scene.toml");
+    std::fs::write(&path, text).unwrap();
+    path
+}
+
+fn stderr(out: &Output) -> String {
+    String::from_utf8_lossy(&out.stderr).into_owned()
+}
+
+/// A user error: non-zero exit, one line on stderr that says what is wrong, no panic.
+fn assert_user_error(out: &Output, needle: &str) {
+    let err = stderr(out);
+    assert!(!out.status.success(), "should fail: {err}");
+    assert!(
+        !err.contains("panicked") && !err.contains("RUST_BACKTRACE"),
+        "{err}"
+    );
+    assert_eq!(err.trim_end().lines().count(), 1, "one line: {err}");
+    assert!(err.contains(needle), "expected `{needle}` in: {err}");
+}
+
+fn generate(scene: &Path, out: &Path, extra: &[&str]) -> Output {
+    let mut args = vec![
+        "generate",
+        scene.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ];
+    args.extend_from_slice(extra);
+    sparsh(&args)
+}
+
+fn files_under(dir: &Path) -> Vec<PathBuf> {
+    let mut files = Vec::new();
+    for entry in std::fs::read_dir(dir).unwrap() {
+        let path = entry.unwrap().path();
+        if path.is_dir() {
+            files.extend(files_under(&path));
+        } else {
+            files.push(path);
+        }
+    }
+    files.sort();
+    files
+}
+
+#[test]
+fn generate_writes_frames_fields_labels_and_a_checked_manifest() {
+    let tmp = tempfile::tempdir().unwrap();
+    let scene = write_scene(tmp.path(), SMALL_SCENE);
+    let out_dir = tmp.path().join("ds");
+    let out = generate(&scene, &out_dir, &[]);
+    assert!(out.status.success(), "{}", stderr(&out));
+
+    let manifest: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out_dir.join("manifest.json")).unwrap()).unwrap();
+    assert_eq!(manifest["frames"], 12, "1.2 s at 10 fps");
+    assert_eq!(manifest["scene"], SMALL_SCENE);
+    assert_eq!(manifest["seed"], 11);
+    let files = manifest["files"].as_object().unwrap();
+    // 12 frames + 12 fields + background + labels, each with a correct checksum.
+    assert_eq!(files.len(), 26);
+    for (rel, sum) in files {
+        let bytes = std::fs::read(out_dir.join(rel)).unwrap();
+        let hex: String = Sha256::digest(&bytes)
+            .iter()
+            .map(|b| format!("{b:02x}"))
+            .collect();
+        assert_eq!(&hex, sum, "{rel}");
+    }
+    let on_disk = files_under(&out_dir).len();
+    assert_eq!(on_disk, files.len() + 1, "no stray or temporary files");
+
+    let frame = image::open(out_dir.join("frames/000011.png"))
+        .unwrap()
+        .to_rgb8();
+    assert_eq!(frame.dimensions(), (80, 60));
+
+    let labels = std::fs::read_to_string(out_dir.join("labels.jsonl")).unwrap();
+    let rows: Vec<serde_json::Value> = labels
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    assert_eq!(rows.len(), 12);
+    assert_eq!(rows[0]["force_n"][2], 0.0, "tip starts above the gel");
+    assert!(
+        rows[6]["force_n"][2].as_f64().unwrap() > 0.0,
+        "pressed at 0.6 s"
+    );
+    assert_eq!(rows[6]["pose"]["position_mm"][2], -0.8);
+
+    // Fields: eight named channels; the pressure integrates to the labelled normal force.
+    let exr = sparsh_data::read_exr_channels(&out_dir.join("fields/000006.exr")).unwrap();
+    let mut names: Vec<&str> = exr.channels.iter().map(|(n, _)| n.as_str()).collect();
+    names.sort();
+    assert_eq!(names, ["contact", "p", "qx", "qy", "slip", "ux", "uy", "uz"]);
+    let cell_area_mm2 = 0.2 * 0.2;
+    let fz: f64 =
+        exr.get("p").unwrap().iter().map(|&p| p as f64).sum::<f64>() * cell_area_mm2 * 1e-3;
+    let label_fz = rows[6]["force_n"][2].as_f64().unwrap();
+    assert!((fz - label_fz).abs() < 1e-4 * label_fz, "{fz} vs {label_fz}");
+}
+
+#[test]
+fn same_scene_and_seed_give_identical_bytes_with_one_or_two_threads() {
+    let tmp = tempfile::tempdir().unwrap();
+    let scene = write_scene(tmp.path(), SMALL_SCENE);
+    let (a, b) = (tmp.path().join("a"), tmp.path().join("b"));
+    assert!(generate(&scene, &a, &["--threads", "1"]).status.success());
+    assert!(generate(&scene, &b, &["--threads", "2"]).status.success());
+    let (fa, fb) = (files_under(&a), files_under(&b));
+    assert_eq!(fa.len(), fb.len());
+    for (x, y) in fa.iter().zip(&fb) {
+        assert_eq!(x.strip_prefix(&a).unwrap(), y.strip_prefix(&b).unwrap());
+        assert!(
+            std::fs::read(x).unwrap() == std::fs::read(y).unwrap(),
+            "{} differs",
+            x.display()
+        );
+    }
+}
+
+#[test]
+fn indenter_that_never_touches_gives_zero_fields() {
+    let tmp = tempfile::tempdir().unwrap();
+    let scene = write_scene(tmp.path(), &SMALL_SCENE.replace("-0.8]", "2.0]"));
+    let out_dir = tmp.path().join("ds");
+    let out = generate(&scene, &out_dir, &[]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let exr = sparsh_data::read_exr_channels(&out_dir.join("fields/000008.exr")).unwrap();
+    for (name, data) in &exr.channels {
+        assert!(data.iter().all(|&v| v == 0.0), "channel {name} not zero");
+    }
+    let background = std::fs::read(out_dir.join("background.png")).unwrap();
+    let frame = std::fs::read(out_dir.join("frames/000008.png")).unwrap();
+    assert!(background == frame, "an untouched gel looks like its background");
+}
+
+#[test]
+fn target_normal_force_is_met() {
+    let tmp = tempfile::tempdir().unwrap();
+    let text = SMALL_SCENE
+        .replace(
+            "position_mm = [-1.0, 0.0, -0.8]\n",
+            "position_mm = [-1.0, 0.0, 0.0]\nnormal_force_n = 1.5\n",
+        )
+        .replace(
+            "position_mm = [1.0, 0.0, -0.8]\n",
+            "position_mm = [1.0, 0.0, 0.0]\nnormal_force_n = 1.5\n",
+        );
+    let scene = write_scene(tmp.path(), &text);
+    let out_dir = tmp.path().join("ds");
+    let out = generate(&scene, &out_dir, &[]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let labels = std::fs::read_to_string(out_dir.join("labels.jsonl")).unwrap();
+    for line in labels.lines().skip(6) {
+        let row: serde_json::Value = serde_json::from_str(line).unwrap();
+        let fz = row["force_n"][2].as_f64().unwrap();
+        assert!((fz - 1.5).abs() < 1e-6, "{fz}");
+        assert!(
+            row["pose"]["position_mm"][2].as_f64().unwrap() < 0.0,
+            "pressed in"
+        );
+    }
+}
+
+#[test]
+fn render_writes_one_frame_and_its_fields() {
+    let tmp = tempfile::tempdir().unwrap();
+    let scene = write_scene(tmp.path(), SMALL_SCENE);
+    let (png, exr) = (tmp.path().join("f.png"), tmp.path().join("f.exr"));
+    let out = sparsh(&[
+        "render",
+        scene.to_str().unwrap(),
+        "--frame",
+        "7",
+        "--out",
+        png.to_str().unwrap(),
+        "--fields",
+        exr.to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    // The same frame as `generate` writes.
+    let ds = tmp.path().join("ds");
+    assert!(generate(&scene, &ds, &[]).status.success());
+    assert!(std::fs::read(&png).unwrap() == std::fs::read(ds.join("frames/000007.png")).unwrap());
+    assert!(std::fs::read(&exr).unwrap() == std::fs::read(ds.join("fields/000007.exr")).unwrap());
+
+    let out = sparsh(&[
+        "render",
+        scene.to_str().unwrap(),
+        "--frame",
+        "12",
+        "--out",
+        png.to_str().unwrap(),
+    ]);
+    assert_user_error(&out, "out of range");
+}
+
+#[test]
+fn non_empty_output_directory_needs_force() {
+    let tmp = tempfile::tempdir().unwrap();
+    let scene = write_scene(tmp.path(), SMALL_SCENE);
+    let out_dir = tmp.path().join("ds");
+    std::fs::create_dir(&out_dir).unwrap();
+    std::fs::write(out_dir.join("notes.txt"), "keep me").unwrap();
+    assert_user_error(&generate(&scene, &out_dir, &[]), "not empty");
+    assert!(!out_dir.join("frames").exists(), "nothing written");
+    let out = generate(&scene, &out_dir, &["--force"]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    assert!(
+        out_dir.join("notes.txt").exists(),
+        "--force replaces only the dataset"
+    );
+}
+
+#[test]
+fn bad_scenes_fail_with_one_line() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out_dir = tmp.path().join("ds");
+    for (bad, needle) in [
+        (
+            SMALL_SCENE.replace("radius_mm = 6.0", "radius_mm = 6.0 ]"),
+            "scene.toml:15:17:",
+        ),
+        (
+            SMALL_SCENE.replace("thickness_mm = 3.0", "thicknes_mm = 3.0"),
+            "thicknes_mm",
+        ),
+        (
+            SMALL_SCENE.replace("thickness_mm = 3.0", "thickness_mm = 0.0"),
+            "gel.thickness_mm",
+        ),
+        (
+            SMALL_SCENE.replace("youngs_modulus_kpa = 300.0", "youngs_modulus_kpa = -1.0"),
+            "gel.youngs_modulus_kpa",
+        ),
+        (
+            SMALL_SCENE.replace("thickness_mm = 3.0", "poisson_ratio = 0.7"),
+            "gel.poisson_ratio",
+        ),
+        (
+            SMALL_SCENE.replace(
+                "shape = \"sphere\"\nradius_mm = 6.0",
+                "shape = \"mesh\"\nmesh = \"gone.obj\"",
+            ),
+            "gone.obj",
+        ),
+    ] {
+        let scene = write_scene(tmp.path(), &bad);
+        assert_user_error(&generate(&scene, &out_dir, &[]), needle);
+        assert!(!out_dir.exists(), "nothing written for a bad scene");
+    }
+    let missing = tmp.path().join("missing.toml");
+    assert_user_error(&generate(&missing, &out_dir, &[]), "missing.toml");
+}
