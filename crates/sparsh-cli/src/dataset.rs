@@ -1,22 +1,69 @@
-//! `sparsh render` and `sparsh generate`: the simulator joined to the dataset writer.
+//! `sparsh render`, `sparsh generate` and `sparsh verify`: the simulator joined to the dataset
+//! writer.
 
 use std::path::Path;
+use std::str::FromStr;
+use std::sync::Mutex;
+use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use indicatif::{ProgressBar, ProgressStyle};
+use rayon::prelude::*;
 use sparsh_contact::Fields;
-use sparsh_data::{DatasetWriter, Label, Manifest, PoseLabel, encode_png, write_atomic};
-use sparsh_scene::{FieldName, OutputSpec, Precision, Scene, SolverKind};
+use sparsh_data::{
+    Dataset, Identity, Label, Manifest, OpenMode, PoseLabel, SequencePart, encode_png, write_atomic,
+};
+use sparsh_scene::{DatasetSpec, FieldName, OutputSpec, Precision, SequenceScene, SolverKind};
 use sparsh_sim::{Frame, Simulator};
 
-/// Renders frame `index` of `scene_path` to `out` (PNG) and optionally its fields to an EXR.
-pub fn render(scene_path: &Path, index: usize, out: &Path, fields: Option<&Path>) -> Result<()> {
-    let scene = Scene::load(scene_path)?;
-    let mut sim = Simulator::new(scene)?;
+/// `--shard K/N`: this run makes the sequences s with s mod N = K (K from 0).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Shard {
+    index: usize,
+    count: usize,
+}
+
+impl FromStr for Shard {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Shard, String> {
+        let (k, n) = s
+            .split_once('/')
+            .ok_or_else(|| format!("`{s}` is not K/N"))?;
+        let parse = |v: &str| {
+            v.trim()
+                .parse::<usize>()
+                .map_err(|_| format!("`{s}` is not K/N with whole numbers"))
+        };
+        let (index, count) = (parse(k)?, parse(n)?);
+        if count == 0 || index >= count {
+            return Err(format!("`{s}`: K must be in 0..N and N at least 1"));
+        }
+        Ok(Shard { index, count })
+    }
+}
+
+/// Renders frame `index` of sequence `sequence` to `out` (PNG), and optionally its fields.
+pub fn render(
+    scene_path: &Path,
+    sequence: usize,
+    index: usize,
+    out: &Path,
+    fields: Option<&Path>,
+) -> Result<()> {
+    let spec = DatasetSpec::load(scene_path)?;
+    let sequences = spec.sequence_count();
+    if sequence >= sequences {
+        bail!(
+            "{}: --sequence {sequence} is out of range: the scene has {sequences} sequences",
+            scene_path.display()
+        );
+    }
+    let mut sim = Simulator::new(spec.sequence(sequence)?.scene)?;
     let count = sim.frame_count();
     if index >= count {
         bail!(
-            "{}: --frame {index} is out of range: the scene has {count} frames",
+            "{}: --frame {index} is out of range: the sequence has {count} frames",
             scene_path.display()
         );
     }
@@ -30,92 +77,224 @@ pub fn render(scene_path: &Path, index: usize, out: &Path, fields: Option<&Path>
     if let Some(path) = fields {
         let spec = OutputSpec {
             fields: FieldName::ALL.to_vec(),
-            ..sim.scene().output.clone()
+            ..spec.output.clone()
         };
         write_atomic(path, &exr_bytes(&frame.fields, &spec)?)?;
     }
     Ok(())
 }
 
-/// Simulates every frame of `scene_path` into the dataset directory `out`.
-pub fn generate(scene_path: &Path, out: &Path, force: bool) -> Result<()> {
-    let scene = Scene::load(scene_path)?;
-    let mut sim = Simulator::new(scene)?;
-    let mut writer = DatasetWriter::create(out, force)?;
-    writer.write_png("background.png", &sim.background())?;
-    let count = sim.frame_count();
-    let progress = ProgressBar::new(count as u64).with_style(
+/// What `generate` is asked to do.
+#[derive(Debug, Clone, Copy)]
+pub struct GenerateOptions {
+    /// Replace a dataset already in the directory.
+    pub force: bool,
+    /// Continue an interrupted run.
+    pub resume: bool,
+    /// Make only this shard's sequences.
+    pub shard: Option<Shard>,
+}
+
+/// Seconds per pipeline stage, summed over frames.
+#[derive(Debug, Default, Clone, Copy)]
+struct StageTotals {
+    gap_s: f64,
+    contact_s: f64,
+    optics_s: f64,
+    writing_s: f64,
+}
+
+/// Simulates the sequences of `scene_path` (this shard's, not yet recorded) into `out`.
+pub fn generate(scene_path: &Path, out: &Path, options: GenerateOptions) -> Result<()> {
+    if options.force && options.resume {
+        bail!("--force and --resume contradict each other: pick one");
+    }
+    let spec = DatasetSpec::load(scene_path)?;
+    let identity = Identity {
+        format: "sparsh-dataset/1".into(),
+        sparsh_version: env!("CARGO_PKG_VERSION").into(),
+        scene_file: spec
+            .path
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default(),
+        scene: spec.source.clone(),
+        seed: spec.seed,
+        sequences: spec.sequence_count(),
+        frames: spec.frame_count(),
+    };
+    let mode = if options.resume || options.shard.is_some() {
+        OpenMode::Join
+    } else {
+        OpenMode::Fresh {
+            force: options.force,
+        }
+    };
+    let dataset = Dataset::open(out, &identity, mode)?;
+    let todo: Vec<usize> = (0..identity.sequences)
+        .filter(|s| options.shard.is_none_or(|sh| s % sh.count == sh.index))
+        .filter(|&s| !dataset.has_part(s))
+        .collect();
+    let sequences: Vec<SequenceScene> = todo
+        .iter()
+        .map(|&s| spec.sequence(s))
+        .collect::<Result<_, _>>()?;
+    let frames: usize = sequences.iter().map(|s| s.scene.frames().len()).sum();
+    let progress = ProgressBar::new(frames as u64).with_style(
         ProgressStyle::with_template(
             "{elapsed_precise} {bar:40} {pos}/{len} frames, {per_sec}, eta {eta}",
         )
         .expect("valid template"),
     );
-    while let Some(frame) = sim.next_frame() {
-        let frame = frame?;
-        let name = format!("{:06}", frame.target.index);
-        let output = &sim.scene().output;
-        if output.frames {
-            writer.write_png(&format!("frames/{name}.png"), &frame.image)?;
-        }
-        if !output.fields.is_empty() {
-            writer.write_file(
-                &format!("fields/{name}.exr"),
-                &exr_bytes(&frame.fields, output)?,
-            )?;
-        }
-        writer.push_label(&label(&frame));
-        progress.inc(1);
+    let totals = Mutex::new(StageTotals::default());
+    let start = Instant::now();
+    sequences
+        .into_par_iter()
+        .try_for_each(|seq| write_sequence(&dataset, seq, &progress, &totals))?;
+    progress.finish_and_clear();
+    let wall_s = start.elapsed().as_secs_f64();
+    if frames > 0 {
+        let t = *totals.lock().expect("no poisoned lock");
+        let sum = (t.gap_s + t.contact_s + t.optics_s + t.writing_s).max(f64::MIN_POSITIVE);
+        let pct = |v: f64| 100.0 * v / sum;
+        eprintln!(
+            "{frames} frames in {wall_s:.2} s: {:.1} frames/s (gap {:.0} %, contact {:.0} %, optics {:.0} %, writing {:.0} %)",
+            frames as f64 / wall_s,
+            pct(t.gap_s),
+            pct(t.contact_s),
+            pct(t.optics_s),
+            pct(t.writing_s),
+        );
     }
-    progress.finish();
-    let scene = sim.scene();
-    writer
-        .finish(manifest(scene, count))
+    let complete = dataset
+        .finish_if_complete(identity.sequences, manifest(&spec, identity))
         .with_context(|| format!("cannot finish the dataset in {}", out.display()))?;
+    if !complete {
+        eprintln!(
+            "{}: shard done; the manifest is written when every shard has run",
+            out.display()
+        );
+    }
     Ok(())
 }
 
-fn label(frame: &Frame) -> Label {
-    Label {
-        frame: frame.target.index,
-        sequence: 0,
-        frame_in_sequence: frame.target.index,
-        time_s: frame.target.time_s,
-        force_n: frame.fields.force_n,
-        pose: PoseLabel {
-            position_mm: frame.pose.position_mm.to_array(),
-            rotation_deg: frame.pose.rotation_deg.to_array(),
-        },
-        slip_state: frame.fields.slip_state().name().to_string(),
-        contact_area_mm2: frame.fields.contact_area_mm2(),
+/// Simulates one sequence, writes its frames, fields and background, then its record.
+fn write_sequence(
+    dataset: &Dataset,
+    seq: SequenceScene,
+    progress: &ProgressBar,
+    totals: &Mutex<StageTotals>,
+) -> Result<()> {
+    let output = seq.scene.output.clone();
+    let mut sim = Simulator::new(seq.scene)?;
+    let mut part = SequencePart {
+        sequence: seq.sequence,
+        files: Default::default(),
+        labels: Vec::new(),
+    };
+    let background = format!("backgrounds/{:06}.png", seq.sequence);
+    part.files.insert(
+        background.clone(),
+        dataset.write_png(&background, &sim.background())?,
+    );
+    let mut local = StageTotals::default();
+    let mut previous: Option<Frame> = None;
+    let mut forces: Vec<[f64; 3]> = Vec::new();
+    while let Some(frame) = sim.next_frame() {
+        let frame = frame?;
+        let t0 = Instant::now();
+        let index = seq.first_frame + frame.target.index;
+        let name = format!("{index:06}");
+        if output.frames {
+            let rel = format!("frames/{name}.png");
+            part.files
+                .insert(rel.clone(), dataset.write_png(&rel, &frame.image)?);
+        }
+        if !output.fields.is_empty() {
+            let rel = format!("fields/{name}.exr");
+            let bytes = exr_bytes(&frame.fields, &output)?;
+            part.files
+                .insert(rel.clone(), dataset.write_file(&rel, &bytes)?);
+        }
+        forces.push(frame.fields.force_n);
+        let k = frame.target.index;
+        let before = forces[k.saturating_sub(5)];
+        let force = frame.fields.force_n;
+        let [fx, fy, fz] = force;
+        let (dp, dr) = previous.as_ref().map_or(([0.0; 3], [0.0; 3]), |p| {
+            (
+                (frame.pose.position_mm - p.pose.position_mm).to_array(),
+                (frame.pose.rotation_deg - p.pose.rotation_deg).to_array(),
+            )
+        });
+        part.labels.push(Label {
+            frame: index,
+            sequence: seq.sequence,
+            frame_in_sequence: k,
+            family: seq.family.clone(),
+            split: seq.split.name().into(),
+            time_s: frame.target.time_s,
+            force_n: force,
+            delta_force_n: std::array::from_fn(|c| force[c] - before[c]),
+            slip_state: frame.fields.slip_state().name().into(),
+            slip_cone: fx.hypot(fy) > output.slip_cone_ratio * fz,
+            pose: PoseLabel {
+                position_mm: frame.pose.position_mm.to_array(),
+                rotation_deg: frame.pose.rotation_deg.to_array(),
+            },
+            pose_change_se2: [dp[0], dp[1], dr[2]],
+            contact_area_mm2: frame.fields.contact_area_mm2(),
+            background: background.clone(),
+        });
+        local.gap_s += frame.timings.gap_s;
+        local.contact_s += frame.timings.contact_s;
+        local.optics_s += frame.timings.optics_s;
+        local.writing_s += t0.elapsed().as_secs_f64();
+        previous = Some(frame);
+        progress.inc(1);
     }
+    dataset.write_part(&part)?;
+    let mut t = totals.lock().expect("no poisoned lock");
+    t.gap_s += local.gap_s;
+    t.contact_s += local.contact_s;
+    t.optics_s += local.optics_s;
+    t.writing_s += local.writing_s;
+    Ok(())
 }
 
-fn manifest(scene: &Scene, frames: usize) -> Manifest {
+/// `sparsh verify DIR`: checks every checksum in the manifest.
+pub fn verify(dir: &Path) -> Result<()> {
+    let (checked, problems) = sparsh_data::verify(dir)?;
+    for p in &problems {
+        println!("{}: {}", dir.join(&p.file).display(), p.what);
+    }
+    if !problems.is_empty() {
+        bail!(
+            "{}: {} of {checked} files missing or corrupt",
+            dir.display(),
+            problems.len()
+        );
+    }
+    println!("{}: all {checked} files match the manifest", dir.display());
+    Ok(())
+}
+
+fn manifest(spec: &DatasetSpec, identity: Identity) -> Manifest {
     let mut notes = Vec::new();
-    if scene.solver == SolverKind::Geometric {
+    if spec.solvers().contains(&SolverKind::Geometric) {
         notes.push(
             "geometric rung: no tangential mechanics, so qx, qy, ux, uy and slip are zero".into(),
         );
     }
     Manifest {
-        format: "sparsh-dataset/1".into(),
-        sparsh_version: env!("CARGO_PKG_VERSION").into(),
-        scene_file: scene
-            .path
-            .file_name()
-            .map(|n| n.to_string_lossy().into_owned())
-            .unwrap_or_default(),
-        scene: scene.source.clone(),
-        seed: scene.seed,
-        solver: format!("{:?}", scene.solver).to_lowercase(),
-        frames,
-        fields: scene
+        identity,
+        fields: spec
             .output
             .fields
             .iter()
             .map(|f| f.channel().to_string())
             .collect(),
-        field_precision: match scene.output.field_precision {
+        field_precision: match spec.output.field_precision {
             Precision::F32 => "f32",
             Precision::F16 => "f16",
         }

@@ -25,7 +25,11 @@ enum Command {
     Render {
         /// Scene file (TOML).
         scene: PathBuf,
-        /// Frame index (frames before it are simulated too: contact history matters).
+        /// Sequence of a dataset file (from 0).
+        #[arg(long, default_value_t = 0)]
+        sequence: usize,
+        /// Frame index within the sequence (frames before it are simulated too: contact
+        /// history matters).
         #[arg(long, default_value_t = 0)]
         frame: usize,
         /// Output PNG.
@@ -35,16 +39,28 @@ enum Command {
         #[arg(long)]
         fields: Option<PathBuf>,
     },
-    /// Simulate every frame of a scene into a dataset directory.
+    /// Simulate every sequence of a scene or dataset file into a dataset directory.
     Generate {
-        /// Scene file (TOML).
+        /// Scene or dataset file (TOML).
         scene: PathBuf,
-        /// Dataset directory (created; must be empty unless --force).
+        /// Dataset directory (created; must be empty unless --force, --resume or --shard).
         #[arg(long)]
         out: PathBuf,
         /// Replace a dataset already in the directory.
         #[arg(long)]
         force: bool,
+        /// Continue an interrupted run: redo only the sequences not yet recorded.
+        #[arg(long)]
+        resume: bool,
+        /// Make only sequences s with s mod N = K (K from 0), into a directory shared by all
+        /// shards; the last shard to finish writes the manifest.
+        #[arg(long, value_name = "K/N")]
+        shard: Option<dataset::Shard>,
+    },
+    /// Check every file of a dataset against the checksums in its manifest.
+    Verify {
+        /// Dataset directory.
+        dir: PathBuf,
     },
 }
 
@@ -70,10 +86,26 @@ fn run(cli: Cli) -> Result<()> {
     match cli.command {
         Command::Render {
             scene,
+            sequence,
             frame,
             out,
             fields,
-        } => dataset::render(&scene, frame, &out, fields.as_deref()),
-        Command::Generate { scene, out, force } => dataset::generate(&scene, &out, force),
+        } => dataset::render(&scene, sequence, frame, &out, fields.as_deref()),
+        Command::Generate {
+            scene,
+            out,
+            force,
+            resume,
+            shard,
+        } => dataset::generate(
+            &scene,
+            &out,
+            dataset::GenerateOptions {
+                force,
+                resume,
+                shard,
+            },
+        ),
+        Command::Verify { dir } => dataset::verify(&dir),
     }
 }

@@ -2,21 +2,28 @@
 //! reads it. No simulation here.
 //!
 //! ```text
-//! DIR/frames/000000.png      8-bit RGB sensor image per frame
+//! DIR/dataset.json           what the dataset is made from (scene copy, seed, version, counts)
+//! DIR/frames/000000.png      8-bit RGB sensor image per frame (dataset-wide frame index)
 //! DIR/fields/000000.exr      ground-truth fields: f32 (or f16) channels p qx qy ux uy uz contact slip
-//! DIR/background.png         the sensor's image with nothing touching
-//! DIR/labels.jsonl           one JSON row per frame (see [`Label`])
-//! DIR/manifest.json          scene copy, seed, version, counts, sha256 of every file
+//! DIR/backgrounds/000000.png each sequence's no-contact image
+//! DIR/parts/000000.json      record of a finished sequence: its files' sha256 and label rows
+//! DIR/labels.jsonl           one JSON row per frame (see [`Label`]), all sequences in order
+//! DIR/manifest.json          identity, notes and the sha256 of every file; written last
 //! ```
-//! Every file is written under a temporary name and renamed into place, and the manifest comes
-//! last, so an interrupted run never leaves a file that looks complete but is not.
+//! Every file is written under a temporary name and renamed into place; a sequence's record is
+//! written after its files, and the manifest after every record, so an interrupted run never
+//! leaves a file that looks complete but is not, and a resumed run redoes only unrecorded
+//! sequences.
 #![warn(missing_docs)]
 
 mod exr_io;
 mod writer;
 
 pub use exr_io::{ExrChannels, read_exr_channels, write_exr_channels};
-pub use writer::{DatasetWriter, Label, Manifest, PoseLabel, encode_png, write_atomic};
+pub use writer::{
+    Dataset, Identity, Label, Manifest, OpenMode, PoseLabel, Problem, SequencePart, encode_png,
+    verify, write_atomic,
+};
 
 /// Failures reading or writing a dataset; each names the file.
 #[derive(Debug, thiserror::Error)]
@@ -34,6 +41,14 @@ pub enum DataError {
     NotEmpty {
         /// Directory.
         path: std::path::PathBuf,
+    },
+    /// The directory holds a different dataset (another scene or seed).
+    #[error("{path}: {message}")]
+    Refused {
+        /// Directory.
+        path: std::path::PathBuf,
+        /// Why.
+        message: String,
     },
     /// An image or EXR file could not be encoded or decoded.
     #[error("{path}: {message}")]

@@ -1,4 +1,6 @@
-//! Writes a dataset directory: atomic files, labels, and a manifest with their checksums.
+//! Writes a dataset directory sequence by sequence: atomic files, a record per finished
+//! sequence (so killed runs resume and shards share a directory), and, once every sequence is
+//! there, `labels.jsonl` and a manifest with the checksum of every file.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -27,21 +29,34 @@ pub struct Label {
     pub sequence: usize,
     /// Index within its sequence.
     pub frame_in_sequence: usize,
+    /// Family the sequence was drawn from.
+    pub family: String,
+    /// `train` or `test`.
+    pub split: String,
     /// Time since the sequence started (s).
     pub time_s: f64,
     /// Total contact force on the gel [Fx, Fy, Fz] (N); Fz > 0 presses.
     pub force_n: [f64; 3],
+    /// Change of `force_n` since frame t − 5 of the sequence (since its first frame before that).
+    pub delta_force_n: [f64; 3],
+    /// Mechanical stick/slip state: `no_contact`, `stick`, `partial` or `gross`.
+    pub slip_state: String,
+    /// The official Sparsh slip label: ‖(Fx, Fy)‖ > ratio · Fz, the ratio set in `[output]`.
+    pub slip_cone: bool,
     /// Indenter pose.
     pub pose: PoseLabel,
-    /// `no_contact`, `stick`, `partial` or `gross`.
-    pub slip_state: String,
+    /// SE(2) motion of the indenter relative to the sensor since the previous frame:
+    /// [Δx (mm), Δy (mm), Δθ (deg) about the sensor normal]; zero on a sequence's first frame.
+    pub pose_change_se2: [f64; 3],
     /// Contact area (mm²).
     pub contact_area_mm2: f64,
+    /// The sequence's no-contact image, relative to the dataset directory.
+    pub background: String,
 }
 
-/// `manifest.json`: what made the dataset and the checksum of every file in it.
+/// `dataset.json`: what a dataset is made from; a resumed run or another shard must match it.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct Manifest {
+pub struct Identity {
     /// Layout version, `sparsh-dataset/1`.
     pub format: String,
     /// Version of sparsh that wrote it.
@@ -52,10 +67,18 @@ pub struct Manifest {
     pub scene: String,
     /// Scene seed.
     pub seed: u64,
-    /// Contact solver rung.
-    pub solver: String,
+    /// Number of sequences.
+    pub sequences: usize,
     /// Number of frames.
     pub frames: usize,
+}
+
+/// `manifest.json`: the identity, notes, and the sha256 of every file.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Manifest {
+    /// What made the dataset.
+    #[serde(flatten)]
+    pub identity: Identity,
     /// Field channels written per frame.
     pub fields: Vec<String>,
     /// `f32` or `f16`.
@@ -66,30 +89,58 @@ pub struct Manifest {
     pub files: BTreeMap<String, String>,
 }
 
-/// Entries of a dataset directory that `--force` replaces.
-const DATASET_ENTRIES: [&str; 5] = [
-    "frames",
-    "fields",
-    "labels.jsonl",
-    "manifest.json",
-    "background.png",
-];
-
-/// Writes a dataset directory file by file.
-#[derive(Debug)]
-pub struct DatasetWriter {
-    dir: PathBuf,
-    files: BTreeMap<String, String>,
-    labels: Vec<u8>,
+/// The record of one finished sequence: its files' checksums and its label rows.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SequencePart {
+    /// Sequence index.
+    pub sequence: usize,
+    /// sha256 of each file it wrote.
+    pub files: BTreeMap<String, String>,
+    /// Its label rows, in frame order.
+    pub labels: Vec<Label>,
 }
 
-impl DatasetWriter {
-    /// Prepares `dir`: it must be empty or absent, unless `force`, which removes a previous
-    /// dataset's entries (and nothing else) first.
-    pub fn create(dir: &Path, force: bool) -> Result<DatasetWriter, DataError> {
-        if dir.exists() {
-            let mut entries = std::fs::read_dir(dir).map_err(io_err(dir))?;
-            if entries.next().is_some() {
+/// Entries of a dataset directory, which `--force` replaces.
+const DATASET_ENTRIES: [&str; 7] = [
+    "frames",
+    "fields",
+    "backgrounds",
+    "parts",
+    "labels.jsonl",
+    "manifest.json",
+    "dataset.json",
+];
+
+/// How to open a dataset directory.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum OpenMode {
+    /// A new dataset: the directory must be empty or absent, unless `force`, which removes a
+    /// previous dataset's entries (and nothing else).
+    Fresh {
+        /// Replace a dataset already there.
+        force: bool,
+    },
+    /// Continue a dataset made from the same scene and seed (`--resume`), or add a shard to it.
+    Join,
+}
+
+/// A dataset directory being written. Safe to share between threads.
+#[derive(Debug)]
+pub struct Dataset {
+    dir: PathBuf,
+}
+
+impl Dataset {
+    /// Opens `dir` for writing the dataset described by `identity`.
+    pub fn open(dir: &Path, identity: &Identity, mode: OpenMode) -> Result<Dataset, DataError> {
+        let has_entries = dir.is_dir()
+            && std::fs::read_dir(dir)
+                .map_err(io_err(dir))?
+                .next()
+                .is_some();
+        let id_path = dir.join("dataset.json");
+        match mode {
+            OpenMode::Fresh { force } if has_entries => {
                 if !force {
                     return Err(DataError::NotEmpty {
                         path: dir.to_path_buf(),
@@ -104,29 +155,52 @@ impl DatasetWriter {
                     }
                 }
             }
+            OpenMode::Join if has_entries => {
+                let text = std::fs::read(&id_path).map_err(|_| DataError::Refused {
+                    path: dir.to_path_buf(),
+                    message: "holds files but no dataset.json: not a sparsh dataset to resume"
+                        .into(),
+                })?;
+                let found: Identity =
+                    serde_json::from_slice(&text).map_err(|e| DataError::Format {
+                        path: id_path.clone(),
+                        message: e.to_string(),
+                    })?;
+                if let Some(why) = mismatch(&found, identity) {
+                    return Err(DataError::Refused {
+                        path: dir.to_path_buf(),
+                        message: format!("was made from {why}; refusing to mix datasets"),
+                    });
+                }
+            }
+            _ => {}
         }
-        for sub in ["frames", "fields"] {
+        for sub in ["frames", "fields", "backgrounds", "parts"] {
             let path = dir.join(sub);
             std::fs::create_dir_all(&path).map_err(io_err(&path))?;
         }
-        Ok(DatasetWriter {
+        let dataset = Dataset {
             dir: dir.to_path_buf(),
-            files: BTreeMap::new(),
-            labels: Vec::new(),
-        })
+        };
+        if !id_path.exists() {
+            dataset.write_file("dataset.json", &pretty_json(identity))?;
+        }
+        Ok(dataset)
     }
 
-    /// Writes `bytes` to `rel` (relative to the dataset directory) atomically and records its
-    /// checksum.
-    pub fn write_file(&mut self, rel: &str, bytes: &[u8]) -> Result<(), DataError> {
+    /// The dataset directory.
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+
+    /// Writes `bytes` to `rel` atomically; returns its sha256 (hex).
+    pub fn write_file(&self, rel: &str, bytes: &[u8]) -> Result<String, DataError> {
         write_atomic(&self.dir.join(rel), bytes)?;
-        self.files
-            .insert(rel.to_string(), hex(&Sha256::digest(bytes)));
-        Ok(())
+        Ok(sha256_hex(bytes))
     }
 
-    /// Writes an 8-bit RGB PNG.
-    pub fn write_png(&mut self, rel: &str, image: &RgbImage) -> Result<(), DataError> {
+    /// Writes an 8-bit RGB PNG; returns its sha256.
+    pub fn write_png(&self, rel: &str, image: &RgbImage) -> Result<String, DataError> {
         let bytes = encode_png(image).map_err(|message| DataError::Format {
             path: self.dir.join(rel),
             message,
@@ -134,22 +208,131 @@ impl DatasetWriter {
         self.write_file(rel, &bytes)
     }
 
-    /// Appends a row to the labels.
-    pub fn push_label(&mut self, label: &Label) {
-        serde_json::to_writer(&mut self.labels, label).expect("labels serialise");
-        self.labels.push(b'\n');
+    fn part_path(sequence: usize) -> String {
+        format!("parts/{sequence:06}.json")
     }
 
-    /// Writes `labels.jsonl`, then the manifest with every file's checksum: the dataset is
-    /// complete once `manifest.json` exists.
-    pub fn finish(mut self, mut manifest: Manifest) -> Result<(), DataError> {
-        let labels = std::mem::take(&mut self.labels);
-        self.write_file("labels.jsonl", &labels)?;
-        manifest.files = std::mem::take(&mut self.files);
-        let mut json = serde_json::to_vec_pretty(&manifest).expect("manifest serialises");
-        json.push(b'\n');
-        write_atomic(&self.dir.join("manifest.json"), &json)
+    /// Whether sequence `sequence` was finished by this or an earlier run.
+    pub fn has_part(&self, sequence: usize) -> bool {
+        self.dir.join(Self::part_path(sequence)).is_file()
     }
+
+    /// Records a finished sequence (after all its files are written).
+    pub fn write_part(&self, part: &SequencePart) -> Result<(), DataError> {
+        self.write_file(&Self::part_path(part.sequence), &pretty_json(part))
+            .map(drop)
+    }
+
+    /// When every one of `sequences` is recorded, writes `labels.jsonl` and then the manifest
+    /// (so a dataset with a manifest is complete), removes temporary files left by killed runs,
+    /// and returns true; otherwise returns false.
+    pub fn finish_if_complete(
+        &self,
+        sequences: usize,
+        mut manifest: Manifest,
+    ) -> Result<bool, DataError> {
+        if !(0..sequences).all(|s| self.has_part(s)) {
+            return Ok(false);
+        }
+        let mut labels = Vec::new();
+        let mut files = BTreeMap::new();
+        for s in 0..sequences {
+            let rel = Self::part_path(s);
+            let path = self.dir.join(&rel);
+            let bytes = std::fs::read(&path).map_err(io_err(&path))?;
+            let part: SequencePart =
+                serde_json::from_slice(&bytes).map_err(|e| DataError::Format {
+                    path: path.clone(),
+                    message: e.to_string(),
+                })?;
+            for row in &part.labels {
+                serde_json::to_writer(&mut labels, row).expect("labels serialise");
+                labels.push(b'\n');
+            }
+            files.extend(part.files);
+            files.insert(rel, sha256_hex(&bytes));
+        }
+        files.insert(
+            "labels.jsonl".into(),
+            self.write_file("labels.jsonl", &labels)?,
+        );
+        let id_path = self.dir.join("dataset.json");
+        let id = std::fs::read(&id_path).map_err(io_err(&id_path))?;
+        files.insert("dataset.json".into(), sha256_hex(&id));
+        remove_temporaries(&self.dir)?;
+        manifest.files = files;
+        write_atomic(&self.dir.join("manifest.json"), &pretty_json(&manifest))?;
+        Ok(true)
+    }
+}
+
+/// What differs between the identity on disk and the one asked for.
+fn mismatch(found: &Identity, wanted: &Identity) -> Option<String> {
+    if found.seed != wanted.seed {
+        Some(format!("seed {} (this run: {})", found.seed, wanted.seed))
+    } else if found.scene != wanted.scene {
+        Some(format!("another scene ({})", found.scene_file))
+    } else if found.format != wanted.format || found.sparsh_version != wanted.sparsh_version {
+        Some(format!(
+            "{} by sparsh {} (this is {} by sparsh {})",
+            found.format, found.sparsh_version, wanted.format, wanted.sparsh_version
+        ))
+    } else {
+        None
+    }
+}
+
+/// A problem `verify` found.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Problem {
+    /// File, relative to the dataset directory.
+    pub file: String,
+    /// `missing` or `corrupt (sha256 mismatch)`.
+    pub what: &'static str,
+}
+
+/// Checks every checksum in `dir/manifest.json`; returns the files that are missing or differ.
+pub fn verify(dir: &Path) -> Result<(usize, Vec<Problem>), DataError> {
+    let path = dir.join("manifest.json");
+    let bytes = std::fs::read(&path).map_err(io_err(&path))?;
+    let manifest: Manifest = serde_json::from_slice(&bytes).map_err(|e| DataError::Format {
+        path: path.clone(),
+        message: e.to_string(),
+    })?;
+    let mut problems = Vec::new();
+    for (rel, sum) in &manifest.files {
+        match std::fs::read(dir.join(rel)) {
+            Err(_) => problems.push(Problem {
+                file: rel.clone(),
+                what: "missing",
+            }),
+            Ok(data) if &sha256_hex(&data) != sum => problems.push(Problem {
+                file: rel.clone(),
+                what: "corrupt (sha256 mismatch)",
+            }),
+            Ok(_) => {}
+        }
+    }
+    Ok((manifest.files.len(), problems))
+}
+
+fn remove_temporaries(dir: &Path) -> Result<(), DataError> {
+    for entry in std::fs::read_dir(dir).map_err(io_err(dir))? {
+        let path = entry.map_err(io_err(dir))?.path();
+        let name = path.file_name().map(|n| n.to_string_lossy().into_owned());
+        if path.is_dir() {
+            remove_temporaries(&path)?;
+        } else if name.is_some_and(|n| n.starts_with('.') && n.ends_with(".tmp")) {
+            std::fs::remove_file(&path).map_err(io_err(&path))?;
+        }
+    }
+    Ok(())
+}
+
+fn pretty_json<T: Serialize>(value: &T) -> Vec<u8> {
+    let mut json = serde_json::to_vec_pretty(value).expect("serialises");
+    json.push(b'\n');
+    json
 }
 
 /// Encodes an RGB image as PNG bytes.
@@ -161,21 +344,27 @@ pub fn encode_png(image: &RgbImage) -> Result<Vec<u8>, String> {
     Ok(bytes)
 }
 
-/// Writes `bytes` to a temporary file beside `path`, then renames it into place, so `path` is
-/// either absent or complete.
+/// Writes `bytes` to a temporary file beside `path` (named after the process, so concurrent
+/// writers never share one), then renames it into place: `path` is either absent or complete.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), DataError> {
     let name = path
         .file_name()
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_default();
-    let tmp = path.with_file_name(format!(".{name}.tmp"));
-    std::fs::write(&tmp, bytes).map_err(io_err(path))?;
+    let tmp = path.with_file_name(format!(".{name}.{}.tmp", std::process::id()));
+    std::fs::write(&tmp, bytes).map_err(|e| {
+        let _ = std::fs::remove_file(&tmp);
+        io_err(path)(e)
+    })?;
     std::fs::rename(&tmp, path).map_err(|e| {
         let _ = std::fs::remove_file(&tmp);
         io_err(path)(e)
     })
 }
 
-fn hex(digest: &[u8]) -> String {
-    digest.iter().map(|b| format!("{b:02x}")).collect()
+fn sha256_hex(bytes: &[u8]) -> String {
+    Sha256::digest(bytes)
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect()
 }

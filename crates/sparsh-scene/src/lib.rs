@@ -7,6 +7,7 @@
 #![warn(missing_docs)]
 
 mod error;
+mod family;
 mod gap;
 pub mod grid;
 mod indenter;
@@ -18,6 +19,7 @@ use std::path::{Path, PathBuf};
 use serde::Deserialize;
 
 pub use error::SceneError;
+pub use family::{DatasetSpec, MotionKind, Range, SequenceScene, Split, sequence_seed};
 pub use gap::GapField;
 pub use grid::Grid;
 pub use indenter::{Anchor, Indenter, IndenterSpec, LengthUnit, MeshIndenter, ShapeKind, TriMesh};
@@ -72,8 +74,15 @@ impl Gel {
         self.youngs_modulus_kpa / (1.0 - self.poisson_ratio * self.poisson_ratio)
     }
 
-    fn validate(&self, path: &Path) -> Result<(), SceneError> {
-        let bad = |field: &str, msg: String| Err(SceneError::invalid(path, field, msg));
+    /// Checks every value; errors name the key under `table` (e.g. `gel`).
+    pub(crate) fn validate(&self, path: &Path, table: &str) -> Result<(), SceneError> {
+        let bad = |field: &str, msg: String| {
+            Err(SceneError::invalid(
+                path,
+                field.replacen("gel", table, 1),
+                msg,
+            ))
+        };
         if !(self.youngs_modulus_kpa.is_finite() && self.youngs_modulus_kpa > 0.0) {
             return bad(
                 "gel.youngs_modulus_kpa",
@@ -193,6 +202,9 @@ pub struct OutputSpec {
     /// Field precision.
     #[serde(default)]
     pub field_precision: Precision,
+    /// Friction-cone slip label of the official Sparsh code: slip when ‖F_xy‖ > ratio · F_z.
+    #[serde(default = "default_slip_cone_ratio")]
+    pub slip_cone_ratio: f64,
 }
 
 impl Default for OutputSpec {
@@ -201,8 +213,13 @@ impl Default for OutputSpec {
             frames: true,
             fields: all_fields(),
             field_precision: Precision::F32,
+            slip_cone_ratio: default_slip_cone_ratio(),
         }
     }
+}
+
+fn default_slip_cone_ratio() -> f64 {
+    1.6
 }
 
 fn yes() -> bool {
@@ -216,7 +233,7 @@ fn all_fields() -> Vec<FieldName> {
 /// `[sensor]`: a preset and optional overrides.
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]
-struct SensorSection {
+pub(crate) struct SensorSection {
     preset: String,
     width_px: Option<usize>,
     height_px: Option<usize>,
@@ -224,6 +241,35 @@ struct SensorSection {
     fps: Option<f64>,
     lights: Option<Vec<Light>>,
     background: Option<PathBuf>,
+}
+
+impl SensorSection {
+    /// The preset with the overrides applied and checked; paths are relative to `path`'s folder.
+    pub(crate) fn resolve(&self, path: &Path) -> Result<SensorConfig, SceneError> {
+        let dir = path.parent().unwrap_or(Path::new("."));
+        let mut sensor = SensorConfig::preset(&self.preset).ok_or_else(|| {
+            let names: Vec<&str> = PRESETS.iter().map(|(n, _)| *n).collect();
+            SceneError::invalid(
+                path,
+                "sensor.preset",
+                format!(
+                    "unknown preset `{}` (one of {})",
+                    self.preset,
+                    names.join(", ")
+                ),
+            )
+        })?;
+        sensor.width_px = self.width_px.unwrap_or(sensor.width_px);
+        sensor.height_px = self.height_px.unwrap_or(sensor.height_px);
+        sensor.mm_per_px = self.mm_per_px.unwrap_or(sensor.mm_per_px);
+        sensor.fps = self.fps.unwrap_or(sensor.fps);
+        if let Some(lights) = &self.lights {
+            sensor.lights = lights.clone();
+        }
+        sensor.background = self.background.as_ref().map(|b| dir.join(b));
+        sensor.validate(path)?;
+        Ok(sensor)
+    }
 }
 
 /// The scene file as written.
@@ -282,28 +328,8 @@ impl Scene {
     pub fn parse(path: &Path, source: String) -> Result<Scene, SceneError> {
         let file: SceneFile =
             toml::from_str(&source).map_err(|e| SceneError::from_toml(path, &source, e))?;
-        let dir = path.parent().unwrap_or(Path::new("."));
-        let s = file.sensor;
-        let mut sensor = SensorConfig::preset(&s.preset).ok_or_else(|| {
-            let names: Vec<&str> = PRESETS.iter().map(|(n, _)| *n).collect();
-            SceneError::invalid(
-                path,
-                "sensor.preset",
-                format!(
-                    "unknown preset `{}` (one of {})",
-                    s.preset,
-                    names.join(", ")
-                ),
-            )
-        })?;
-        sensor.width_px = s.width_px.unwrap_or(sensor.width_px);
-        sensor.height_px = s.height_px.unwrap_or(sensor.height_px);
-        sensor.mm_per_px = s.mm_per_px.unwrap_or(sensor.mm_per_px);
-        sensor.fps = s.fps.unwrap_or(sensor.fps);
-        sensor.lights = s.lights.unwrap_or(sensor.lights);
-        sensor.background = s.background.map(|b| dir.join(b));
-        sensor.validate(path)?;
-        file.gel.validate(path)?;
+        let sensor = file.sensor.resolve(path)?;
+        file.gel.validate(path, "gel")?;
         let trajectory = file.trajectory;
         if trajectory.is_empty() {
             return Err(SceneError::invalid(

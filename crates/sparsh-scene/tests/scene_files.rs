@@ -213,10 +213,10 @@ fn write_glb(path: &Path, vertices: &[[f32; 3]], faces: &[[u32; 3]]) {
         faces.len() * 3
     );
     let mut json = json.into_bytes();
-    while json.len() % 4 != 0 {
+    while !json.len().is_multiple_of(4) {
         json.push(b' ');
     }
-    while bin.len() % 4 != 0 {
+    while !bin.len().is_multiple_of(4) {
         bin.push(0);
     }
     let total = 12 + 8 + json.len() + 8 + bin.len();

@@ -3,10 +3,11 @@
 //! frame to frame), and the tactile image of the deformed gel. No disk I/O.
 #![warn(missing_docs)]
 
-use glam::DVec3;
+use std::time::Instant;
+
 use image::RgbImage;
 use sparsh_contact::{
-    ContactError, ContactInput, ContactSolver, Fields, NormalControl, solver_for,
+    ContactError, ContactInput, ContactSolver, Fields, NormalControl, rigid_shift_mm, solver_for,
 };
 use sparsh_optics::{OpticsError, PhotometricRenderer, Surface};
 use sparsh_scene::{FrameTarget, GapField, Pose, Scene};
@@ -38,6 +39,19 @@ pub struct Frame {
     pub image: RgbImage,
     /// Ground-truth fields.
     pub fields: Fields,
+    /// Wall-clock time of each stage (not part of any output).
+    pub timings: StageTimes,
+}
+
+/// Seconds spent in each stage of a frame.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct StageTimes {
+    /// Ray-casting the gap field.
+    pub gap_s: f64,
+    /// The contact solve.
+    pub contact_s: f64,
+    /// Image formation.
+    pub optics_s: f64,
 }
 
 /// Runs one scene's trajectory frame by frame.
@@ -89,8 +103,13 @@ impl Simulator {
 
     fn simulate(&mut self, target: FrameTarget) -> Result<Frame, SimError> {
         let grid = self.scene.grid();
+        let start = Instant::now();
         let gap = GapField::cast(&self.scene.indenter, &target.pose, grid);
-        let rigid_shift_mm = rigid_shift(&gap, &target.pose, self.previous_pose.as_ref());
+        let rigid_shift_mm = match &self.previous_pose {
+            Some(previous) => rigid_shift_mm(previous, &target.pose, &gap),
+            None => vec![[0.0; 2]; grid.len()],
+        };
+        let gap_done = Instant::now();
         let input = ContactInput {
             gap: &gap,
             normal: target
@@ -105,6 +124,7 @@ impl Simulator {
                 frame: target.index,
                 source,
             })?;
+        let contact_done = Instant::now();
         let mut pose = target.pose;
         pose.position_mm.z -= fields.approach_offset_mm;
         self.previous_pose = Some(pose);
@@ -114,33 +134,17 @@ impl Simulator {
             uy_mm: &fields.uy_mm,
             uz_mm: &fields.uz_mm,
         });
+        let timings = StageTimes {
+            gap_s: (gap_done - start).as_secs_f64(),
+            contact_s: (contact_done - gap_done).as_secs_f64(),
+            optics_s: contact_done.elapsed().as_secs_f64(),
+        };
         Ok(Frame {
             target,
             pose,
             image,
             fields,
+            timings,
         })
     }
-}
-
-/// Tangential displacement (mm) since `previous` of the indenter's material point that lies
-/// above each cell at `pose`: P − pose_prev(pose⁻¹(P)) with P = (x, y, gap); cells with nothing
-/// above take the motion of the tip. Zero on the first frame.
-fn rigid_shift(gap: &GapField, pose: &Pose, previous: Option<&Pose>) -> Vec<[f64; 2]> {
-    let Some(prev) = previous else {
-        return vec![[0.0; 2]; gap.grid.len()];
-    };
-    let grid = gap.grid;
-    (0..grid.len())
-        .map(|c| {
-            let g = gap.gap_mm[c];
-            let p = if g.is_finite() {
-                DVec3::new(grid.x_mm(c % grid.nx), grid.y_mm(c / grid.nx), g)
-            } else {
-                pose.position_mm
-            };
-            let before = prev.apply(pose.inverse_apply(p));
-            [p.x - before.x, p.y - before.y]
-        })
-        .collect()
 }
