@@ -134,6 +134,82 @@ impl TriMesh {
         }
     }
 
+    /// Wavefront OBJ text of the mesh (millimetres).
+    pub fn to_obj(&self) -> String {
+        let mut obj = String::new();
+        for v in &self.vertices {
+            obj += &format!("v {} {} {}\n", v.x, v.y, v.z);
+        }
+        for t in &self.triangles {
+            obj += &format!("f {} {} {}\n", t[0] + 1, t[1] + 1, t[2] + 1);
+        }
+        obj
+    }
+
+    /// Binary glTF 2.0 (GLB) of the mesh: one node, one triangle primitive (millimetres).
+    pub fn to_glb(&self) -> Vec<u8> {
+        let mut bin: Vec<u8> = self
+            .vertices
+            .iter()
+            .flat_map(|v| v.to_array())
+            .flat_map(f32::to_le_bytes)
+            .collect();
+        let vertex_bytes = bin.len();
+        bin.extend(
+            self.triangles
+                .iter()
+                .flatten()
+                .flat_map(|i| i.to_le_bytes()),
+        );
+        let index_bytes = bin.len() - vertex_bytes;
+        let finite = self.vertices.iter().filter(|v| v.is_finite());
+        let lo = finite.clone().fold(Vec3::INFINITY, |m, v| m.min(*v));
+        let hi = finite.fold(Vec3::NEG_INFINITY, |m, v| m.max(*v));
+        let mut json = format!(
+            concat!(
+                r#"{{"asset":{{"version":"2.0","generator":"sparsh"}},"scene":0,"#,
+                r#""scenes":[{{"nodes":[0]}}],"nodes":[{{"mesh":0}}],"#,
+                r#""meshes":[{{"primitives":[{{"attributes":{{"POSITION":0}},"indices":1}}]}}],"#,
+                r#""buffers":[{{"byteLength":{}}}],"bufferViews":["#,
+                r#"{{"buffer":0,"byteOffset":0,"byteLength":{}}},"#,
+                r#"{{"buffer":0,"byteOffset":{},"byteLength":{}}}],"accessors":["#,
+                r#"{{"bufferView":0,"componentType":5126,"count":{},"type":"VEC3","min":[{},{},{}],"max":[{},{},{}]}},"#,
+                r#"{{"bufferView":1,"componentType":5125,"count":{},"type":"SCALAR"}}]}}"#
+            ),
+            vertex_bytes + index_bytes,
+            vertex_bytes,
+            vertex_bytes,
+            index_bytes,
+            self.vertices.len(),
+            lo.x,
+            lo.y,
+            lo.z,
+            hi.x,
+            hi.y,
+            hi.z,
+            self.triangles.len() * 3
+        )
+        .into_bytes();
+        while !json.len().is_multiple_of(4) {
+            json.push(b' ');
+        }
+        while !bin.len().is_multiple_of(4) {
+            bin.push(0);
+        }
+        let total = 12 + 8 + json.len() + 8 + bin.len();
+        let mut glb = Vec::with_capacity(total);
+        glb.extend(b"glTF");
+        glb.extend(2u32.to_le_bytes());
+        glb.extend((total as u32).to_le_bytes());
+        glb.extend((json.len() as u32).to_le_bytes());
+        glb.extend(b"JSON");
+        glb.extend(&json);
+        glb.extend((bin.len() as u32).to_le_bytes());
+        glb.extend(b"BIN\0");
+        glb.extend(&bin);
+        glb
+    }
+
     /// Reads an `.obj`, `.gltf` or `.glb` file (positions only), converted to millimetres.
     pub fn load(path: &Path, unit: LengthUnit, scale: f64) -> Result<TriMesh, SceneError> {
         let err = |message: String| SceneError::Mesh {

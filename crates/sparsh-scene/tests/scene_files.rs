@@ -2,7 +2,8 @@
 
 use std::path::{Path, PathBuf};
 
-use sparsh_scene::{Indenter, Scene, SceneError};
+use glam::Vec3;
+use sparsh_scene::{Indenter, Scene, SceneError, TriMesh};
 
 const BASE: &str = r#"
 seed = 3
@@ -168,14 +169,11 @@ fn mesh_extent_mm(scene: &Scene) -> f32 {
 #[test]
 fn obj_mesh_loads_in_its_units() {
     let dir = tempfile::tempdir().unwrap();
-    let mut obj = String::new();
-    for v in TETRA {
-        obj += &format!("v {} {} {}\n", v[0], v[1], v[2]);
-    }
-    for f in TETRA_FACES {
-        obj += &format!("f {} {} {}\n", f[0] + 1, f[1] + 1, f[2] + 1);
-    }
-    std::fs::write(dir.path().join("tetra.obj"), obj).unwrap();
+    let mesh = TriMesh {
+        vertices: TETRA.iter().map(|v| Vec3::from_array(*v)).collect(),
+        triangles: TETRA_FACES.to_vec(),
+    };
+    std::fs::write(dir.path().join("tetra.obj"), mesh.to_obj()).unwrap();
     let (path, text) = mesh_scene(dir.path(), "tetra.obj");
     let scene = Scene::parse(&path, text).expect("OBJ loads");
     assert_eq!(mesh_extent_mm(&scene), 10.0, "1 cm tall");
@@ -183,54 +181,11 @@ fn obj_mesh_loads_in_its_units() {
 
 /// Writes a binary glTF with one triangle mesh.
 fn write_glb(path: &Path, vertices: &[[f32; 3]], faces: &[[u32; 3]]) {
-    let mut bin: Vec<u8> = vertices
-        .iter()
-        .flatten()
-        .flat_map(|v| v.to_le_bytes())
-        .collect();
-    let vlen = bin.len();
-    bin.extend(faces.iter().flatten().flat_map(|i| i.to_le_bytes()));
-    let ilen = bin.len() - vlen;
-    let (lo, hi) = vertices
-        .iter()
-        .fold(([f32::MAX; 3], [f32::MIN; 3]), |(lo, hi), v| {
-            (
-                std::array::from_fn(|k| lo[k].min(v[k])),
-                std::array::from_fn(|k| hi[k].max(v[k])),
-            )
-        });
-    let json = format!(
-        r#"{{"asset":{{"version":"2.0"}},"scene":0,"scenes":[{{"nodes":[0]}}],"nodes":[{{"mesh":0}}],
-"meshes":[{{"primitives":[{{"attributes":{{"POSITION":0}},"indices":1}}]}}],
-"buffers":[{{"byteLength":{}}}],
-"bufferViews":[{{"buffer":0,"byteOffset":0,"byteLength":{vlen}}},{{"buffer":0,"byteOffset":{vlen},"byteLength":{ilen}}}],
-"accessors":[{{"bufferView":0,"componentType":5126,"count":{},"type":"VEC3","min":{:?},"max":{:?}}},
-{{"bufferView":1,"componentType":5125,"count":{},"type":"SCALAR"}}]}}"#,
-        bin.len(),
-        vertices.len(),
-        lo,
-        hi,
-        faces.len() * 3
-    );
-    let mut json = json.into_bytes();
-    while !json.len().is_multiple_of(4) {
-        json.push(b' ');
-    }
-    while !bin.len().is_multiple_of(4) {
-        bin.push(0);
-    }
-    let total = 12 + 8 + json.len() + 8 + bin.len();
-    let mut glb = Vec::new();
-    glb.extend(b"glTF");
-    glb.extend(2u32.to_le_bytes());
-    glb.extend((total as u32).to_le_bytes());
-    glb.extend((json.len() as u32).to_le_bytes());
-    glb.extend(b"JSON");
-    glb.extend(&json);
-    glb.extend((bin.len() as u32).to_le_bytes());
-    glb.extend(b"BIN\0");
-    glb.extend(&bin);
-    std::fs::write(path, glb).unwrap();
+    let mesh = TriMesh {
+        vertices: vertices.iter().map(|v| Vec3::from_array(*v)).collect(),
+        triangles: faces.to_vec(),
+    };
+    std::fs::write(path, mesh.to_glb()).unwrap();
 }
 
 #[test]
@@ -275,4 +230,41 @@ fn mesh_of_zero_area_triangles_is_rejected() {
         err.contains("flat.obj") && err.contains("non-zero area"),
         "{err}"
     );
+}
+
+#[test]
+fn meshes_round_trip_through_obj_and_glb() {
+    let dir = tempfile::tempdir().unwrap();
+    let sphere = TriMesh::uv_sphere(2.5, 12, 18);
+    for name in ["s.obj", "s.glb"] {
+        let path = dir.path().join(name);
+        let bytes = if name.ends_with("obj") {
+            sphere.to_obj().into_bytes()
+        } else {
+            sphere.to_glb()
+        };
+        std::fs::write(&path, bytes).unwrap();
+        let back = TriMesh::load(&path, sparsh_scene::LengthUnit::Mm, 1.0).unwrap();
+        // Readers may renumber vertices: compare the triangles as corner positions, in order.
+        let corners = |m: &TriMesh| -> Vec<[f32; 9]> {
+            let mut tris: Vec<[f32; 9]> = m
+                .triangles
+                .iter()
+                .map(|t| {
+                    let [a, b, c] = t.map(|i| m.vertices[i as usize]);
+                    [a.x, a.y, a.z, b.x, b.y, b.z, c.x, c.y, c.z]
+                })
+                .collect();
+            tris.sort_by(|p, q| p.partial_cmp(q).unwrap());
+            tris
+        };
+        let (got, want) = (corners(&back), corners(&sphere));
+        assert_eq!(got.len(), want.len(), "{name}");
+        for (a, b) in got.iter().zip(&want) {
+            assert!(
+                a.iter().zip(b).all(|(x, y)| (x - y).abs() < 1e-5),
+                "{name}: {a:?} vs {b:?}"
+            );
+        }
+    }
 }
