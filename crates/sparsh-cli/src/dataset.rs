@@ -201,7 +201,7 @@ fn write_sequence(
     let mut previous: Option<Frame> = None;
     let mut forces: Vec<[f64; 3]> = Vec::new();
     while let Some(frame) = sim.next_frame() {
-        let frame = frame?;
+        let frame = frame.with_context(|| format!("sequence {} ({})", seq.sequence, seq.family))?;
         let t0 = Instant::now();
         let index = seq.first_frame + frame.target.index;
         let name = format!("{index:06}");
@@ -236,14 +236,14 @@ fn write_sequence(
             time_s: frame.target.time_s,
             force_n: force,
             delta_force_n: std::array::from_fn(|c| force[c] - before[c]),
-            slip_state: frame.fields.slip_state().name().into(),
+            slip_state: frame.slip_state.name().into(),
             slip_cone: fx.hypot(fy) > output.slip_cone_ratio * fz,
             pose: PoseLabel {
                 position_mm: frame.pose.position_mm.to_array(),
                 rotation_deg: frame.pose.rotation_deg.to_array(),
             },
             pose_change_se2: [dp[0], dp[1], dr[2]],
-            contact_area_mm2: frame.fields.contact_area_mm2(),
+            contact_area_mm2: frame.contact_area_mm2,
             background: background.clone(),
         });
         local.gap_s += frame.timings.gap_s;

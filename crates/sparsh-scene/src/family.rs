@@ -13,7 +13,7 @@ use serde::Deserialize;
 
 use crate::{
     Anchor, Gel, IndenterSpec, Keyframe, LengthUnit, OutputSpec, Scene, SceneError, SensorSection,
-    ShapeKind, SolverKind,
+    ShapeKind, SolverKind, check_margin, check_stride, one_cell,
 };
 
 /// A number, or a `[min, max]` range drawn uniformly per sequence.
@@ -168,6 +168,10 @@ struct FamilyFile {
     frames_per_sequence: usize,
     #[serde(default)]
     solver: SolverKind,
+    #[serde(default = "one_cell")]
+    mechanics_stride: usize,
+    #[serde(default)]
+    mechanics_margin_mm: f64,
     sensor: SensorSection,
     #[serde(default)]
     gel: GelRanges,
@@ -433,6 +437,17 @@ impl FamilyFile {
         let path = &spec.path;
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         let mut sensor = self.sensor.resolve(path)?;
+        check_stride(
+            path,
+            &format!("{at}.mechanics_stride"),
+            self.mechanics_stride,
+            &sensor,
+        )?;
+        check_margin(
+            path,
+            &format!("{at}.mechanics_margin_mm"),
+            self.mechanics_margin_mm,
+        )?;
         if let Some(r) = self.randomize.led_intensity {
             for light in &mut sensor.lights {
                 light.intensity *= r.sample(&mut rng);
@@ -482,6 +497,8 @@ impl FamilyFile {
             source: spec.source.clone(),
             seed,
             solver: self.solver,
+            mechanics_stride: self.mechanics_stride,
+            mechanics_margin_mm: self.mechanics_margin_mm,
             sensor,
             gel,
             indenter_spec,

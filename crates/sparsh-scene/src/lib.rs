@@ -280,6 +280,10 @@ struct SceneFile {
     seed: u64,
     #[serde(default)]
     solver: SolverKind,
+    #[serde(default = "one_cell")]
+    mechanics_stride: usize,
+    #[serde(default)]
+    mechanics_margin_mm: f64,
     sensor: SensorSection,
     #[serde(default)]
     gel: Gel,
@@ -300,6 +304,11 @@ pub struct Scene {
     pub seed: u64,
     /// Contact solver rung.
     pub solver: SolverKind,
+    /// Pixels per mechanics cell along each axis (1: the contact is solved at every pixel).
+    pub mechanics_stride: usize,
+    /// How far the gel, and the contact solve, extends beyond the camera's view on each side
+    /// (mm; rounded up to whole mechanics cells).
+    pub mechanics_margin_mm: f64,
     /// Sensor with overrides applied.
     pub sensor: SensorConfig,
     /// Gel material.
@@ -329,6 +338,8 @@ impl Scene {
         let file: SceneFile =
             toml::from_str(&source).map_err(|e| SceneError::from_toml(path, &source, e))?;
         let sensor = file.sensor.resolve(path)?;
+        check_stride(path, "mechanics_stride", file.mechanics_stride, &sensor)?;
+        check_margin(path, "mechanics_margin_mm", file.mechanics_margin_mm)?;
         file.gel.validate(path, "gel")?;
         let trajectory = file.trajectory;
         if trajectory.is_empty() {
@@ -379,6 +390,8 @@ impl Scene {
             source,
             seed: file.seed,
             solver: file.solver,
+            mechanics_stride: file.mechanics_stride,
+            mechanics_margin_mm: file.mechanics_margin_mm,
             sensor,
             gel: file.gel,
             indenter_spec: file.indenter,
@@ -393,8 +406,76 @@ impl Scene {
         sample(&self.trajectory, self.sensor.fps)
     }
 
-    /// The gel grid (one cell per sensor pixel).
+    /// The image grid (one cell per sensor pixel).
     pub fn grid(&self) -> Grid {
         self.sensor.grid()
     }
+
+    /// The grid the contact is solved on: `mechanics_stride` pixels per cell along each axis,
+    /// centred like the image grid and extending [`Scene::mechanics_margin_cells`] beyond it on
+    /// every side.
+    pub fn mechanics_grid(&self) -> Grid {
+        let s = self.mechanics_stride;
+        let m = self.mechanics_margin_cells();
+        Grid {
+            nx: self.sensor.width_px / s + 2 * m,
+            ny: self.sensor.height_px / s + 2 * m,
+            cell_mm: self.sensor.mm_per_px * s as f64,
+        }
+    }
+
+    /// Mechanics cells beyond the camera's view on each side.
+    pub fn mechanics_margin_cells(&self) -> usize {
+        let cell_mm = self.sensor.mm_per_px * self.mechanics_stride as f64;
+        (self.mechanics_margin_mm / cell_mm - 1e-9).ceil().max(0.0) as usize
+    }
+
+    /// The part of the mechanics grid the camera sees.
+    pub fn view_grid(&self) -> Grid {
+        let s = self.mechanics_stride;
+        Grid {
+            nx: self.sensor.width_px / s,
+            ny: self.sensor.height_px / s,
+            cell_mm: self.sensor.mm_per_px * s as f64,
+        }
+    }
+}
+
+/// The margin must be finite, ≥ 0 and at most 100 mm.
+pub(crate) fn check_margin(path: &Path, field: &str, margin_mm: f64) -> Result<(), SceneError> {
+    if !(margin_mm.is_finite() && (0.0..=100.0).contains(&margin_mm)) {
+        return Err(SceneError::invalid(
+            path,
+            field,
+            format!("must be in [0, 100] mm, got {margin_mm}"),
+        ));
+    }
+    Ok(())
+}
+
+pub(crate) fn one_cell() -> usize {
+    1
+}
+
+/// The stride must be at least 1 and divide the image size.
+pub(crate) fn check_stride(
+    path: &Path,
+    field: &str,
+    stride: usize,
+    sensor: &SensorConfig,
+) -> Result<(), SceneError> {
+    if stride == 0
+        || !sensor.width_px.is_multiple_of(stride)
+        || !sensor.height_px.is_multiple_of(stride)
+    {
+        return Err(SceneError::invalid(
+            path,
+            field,
+            format!(
+                "must be ≥ 1 and divide the image size {}×{}, got {stride}",
+                sensor.width_px, sensor.height_px
+            ),
+        ));
+    }
+    Ok(())
 }

@@ -268,3 +268,23 @@ fn meshes_round_trip_through_obj_and_glb() {
         }
     }
 }
+
+#[test]
+fn mechanics_grid_settings_are_checked() {
+    let line = error_of(&BASE.replace("seed = 3", "seed = 3\nmechanics_stride = 5"));
+    assert!(
+        line.contains("mechanics_stride") && line.contains("64×48"),
+        "{line}"
+    );
+    let line = error_of(&BASE.replace("seed = 3", "seed = 3\nmechanics_margin_mm = -1.0"));
+    assert!(line.contains("mechanics_margin_mm"), "{line}");
+    let scene = parse(&BASE.replace(
+        "seed = 3",
+        "seed = 3\nmechanics_stride = 4\nmechanics_margin_mm = 0.5",
+    ))
+    .unwrap();
+    // 0.5 mm over cells of 4 × 0.0532 mm rounds up to 3 cells a side.
+    assert_eq!(scene.mechanics_margin_cells(), 3);
+    let grid = scene.mechanics_grid();
+    assert_eq!((grid.nx, grid.ny), (16 + 6, 12 + 6));
+}

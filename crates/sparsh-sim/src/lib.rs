@@ -7,20 +7,22 @@ use std::time::Instant;
 
 use image::RgbImage;
 use sparsh_contact::{
-    ContactError, ContactInput, ContactSolver, Fields, NormalControl, rigid_shift_mm, solver_for,
+    ContactError, ContactInput, ContactSolver, Fields, NormalControl, SlipState, rigid_shift_mm,
+    solver_for,
 };
 use sparsh_optics::{OpticsError, PhotometricRenderer, Surface};
-use sparsh_scene::{FrameTarget, GapField, Pose, Scene};
+use sparsh_scene::{FrameTarget, GapField, Grid, Pose, Scene};
 
 /// Why a frame could not be simulated.
 #[derive(Debug, thiserror::Error)]
 pub enum SimError {
     /// The contact solver failed (non-convergence, outside validity).
-    #[error("frame {frame}: {source}")]
+    #[error("frame {frame}")]
     Contact {
         /// Frame index.
         frame: usize,
         /// Solver error.
+        #[source]
         source: ContactError,
     },
     /// The optics could not be set up.
@@ -37,8 +39,12 @@ pub struct Frame {
     pub pose: Pose,
     /// The sensor image.
     pub image: RgbImage,
-    /// Ground-truth fields.
+    /// Ground-truth fields over the camera's view.
     pub fields: Fields,
+    /// Stick/slip state of the whole contact (also beyond the view).
+    pub slip_state: SlipState,
+    /// Area of the whole contact (mm², also beyond the view).
+    pub contact_area_mm2: f64,
     /// Wall-clock time of each stage (not part of any output).
     pub timings: StageTimes,
 }
@@ -67,7 +73,7 @@ pub struct Simulator {
 impl Simulator {
     /// Prepares the solver and renderer of `scene`.
     pub fn new(scene: Scene) -> Result<Simulator, SimError> {
-        let solver = solver_for(scene.solver, &scene.gel, scene.grid());
+        let solver = solver_for(scene.solver, &scene.gel, scene.mechanics_grid());
         let renderer = PhotometricRenderer::new(&scene.sensor)?;
         Ok(Simulator {
             targets: scene.frames(),
@@ -102,9 +108,9 @@ impl Simulator {
     }
 
     fn simulate(&mut self, target: FrameTarget) -> Result<Frame, SimError> {
-        let grid = self.scene.grid();
+        let grid = self.scene.mechanics_grid();
         let start = Instant::now();
-        let gap = GapField::cast(&self.scene.indenter, &target.pose, grid);
+        let gap = finite_gap(GapField::cast(&self.scene.indenter, &target.pose, grid));
         let rigid_shift_mm = match &self.previous_pose {
             Some(previous) => rigid_shift_mm(previous, &target.pose, &gap),
             None => vec![[0.0; 2]; grid.len()],
@@ -125,15 +131,35 @@ impl Simulator {
                 source,
             })?;
         let contact_done = Instant::now();
+        let slip_state = fields.slip_state();
+        let contact_area_mm2 = fields.contact_area_mm2();
+        let fields = crop(
+            &fields,
+            self.scene.mechanics_margin_cells(),
+            self.scene.view_grid(),
+        );
+        let grid = fields.grid;
         let mut pose = target.pose;
         pose.position_mm.z -= fields.approach_offset_mm;
         self.previous_pose = Some(pose);
-        let image = self.renderer.render(&Surface {
-            grid,
-            ux_mm: &fields.ux_mm,
-            uy_mm: &fields.uy_mm,
-            uz_mm: &fields.uz_mm,
-        });
+        let image_grid = self.scene.grid();
+        let image = if image_grid == grid {
+            self.renderer.render(&Surface {
+                grid,
+                ux_mm: &fields.ux_mm,
+                uy_mm: &fields.uy_mm,
+                uz_mm: &fields.uz_mm,
+            })
+        } else {
+            let up = |v: &[f64]| upsample(v, grid, image_grid);
+            let (ux, uy, uz) = (up(&fields.ux_mm), up(&fields.uy_mm), up(&fields.uz_mm));
+            self.renderer.render(&Surface {
+                grid: image_grid,
+                ux_mm: &ux,
+                uy_mm: &uy,
+                uz_mm: &uz,
+            })
+        };
         let timings = StageTimes {
             gap_s: (gap_done - start).as_secs_f64(),
             contact_s: (contact_done - gap_done).as_secs_f64(),
@@ -144,7 +170,129 @@ impl Simulator {
             pose,
             image,
             fields,
+            slip_state,
+            contact_area_mm2,
             timings,
         })
+    }
+}
+
+/// Cells with nothing above (gap +∞) get a finite gap farther than any surface displacement
+/// can reach (the farthest finite gap plus the deepest penetration plus 1 mm), so solvers that
+/// warm-start from the previous frame's contact never meet an infinite gap.
+fn finite_gap(mut gap: GapField) -> GapField {
+    let farthest = gap
+        .gap_mm
+        .iter()
+        .copied()
+        .filter(|g| g.is_finite())
+        .fold(0.0, f64::max);
+    let far_mm = farthest + gap.max_penetration_mm() + 1.0;
+    for g in &mut gap.gap_mm {
+        if !g.is_finite() {
+            *g = far_mm;
+        }
+    }
+    gap
+}
+
+/// The fields over `view`, the central part of the mechanics grid `margin` cells in from each
+/// side. The total force and the approach found stay those of the whole gel.
+fn crop(fields: &Fields, margin: usize, view: Grid) -> Fields {
+    if margin == 0 {
+        return fields.clone();
+    }
+    let nx = fields.grid.nx;
+    let take = |v: &[f64]| -> Vec<f64> {
+        (0..view.ny)
+            .flat_map(|j| {
+                let row = (j + margin) * nx + margin;
+                v[row..row + view.nx].iter().copied()
+            })
+            .collect()
+    };
+    let take_mask = |v: &[bool]| -> Vec<bool> {
+        (0..view.ny)
+            .flat_map(|j| {
+                let row = (j + margin) * nx + margin;
+                v[row..row + view.nx].iter().copied()
+            })
+            .collect()
+    };
+    Fields {
+        grid: view,
+        ux_mm: take(&fields.ux_mm),
+        uy_mm: take(&fields.uy_mm),
+        uz_mm: take(&fields.uz_mm),
+        pressure_kpa: take(&fields.pressure_kpa),
+        traction_x_kpa: take(&fields.traction_x_kpa),
+        traction_y_kpa: take(&fields.traction_y_kpa),
+        contact: take_mask(&fields.contact),
+        slip: take_mask(&fields.slip),
+        force_n: fields.force_n,
+        approach_offset_mm: fields.approach_offset_mm,
+    }
+}
+
+/// Bilinear interpolation of a field on the cell centres of `coarse` at the cell centres of
+/// `fine` (same centre and extent), holding the edge values beyond the outermost centres.
+pub fn upsample(values: &[f64], coarse: Grid, fine: Grid) -> Vec<f64> {
+    let axis = |n_fine: usize, n_coarse: usize, ratio: f64| -> Vec<(usize, usize, f64)> {
+        (0..n_fine)
+            .map(|i| {
+                let t = ((i as f64 + 0.5) / ratio - 0.5).clamp(0.0, (n_coarse - 1) as f64);
+                let i0 = (t.floor() as usize).min(n_coarse.saturating_sub(2));
+                let i1 = (i0 + 1).min(n_coarse - 1);
+                (i0, i1, t - i0 as f64)
+            })
+            .collect()
+    };
+    let ratio = coarse.cell_mm / fine.cell_mm;
+    let xs = axis(fine.nx, coarse.nx, ratio);
+    let ys = axis(fine.ny, coarse.ny, ratio);
+    let at = |i: usize, j: usize| values[j * coarse.nx + i];
+    let mut out = Vec::with_capacity(fine.len());
+    for &(j0, j1, wy) in &ys {
+        for &(i0, i1, wx) in &xs {
+            let top = at(i0, j0) * (1.0 - wx) + at(i1, j0) * wx;
+            let bottom = at(i0, j1) * (1.0 - wx) + at(i1, j1) * wx;
+            out.push(top * (1.0 - wy) + bottom * wy);
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Bilinear interpolation reproduces a linear field exactly between the outermost centres.
+    #[test]
+    fn upsampling_is_exact_for_linear_fields() {
+        let coarse = Grid {
+            nx: 8,
+            ny: 6,
+            cell_mm: 0.4,
+        };
+        let fine = Grid {
+            nx: 32,
+            ny: 24,
+            cell_mm: 0.1,
+        };
+        let linear = |x: f64, y: f64| 0.3 + 2.0 * x - 0.7 * y;
+        let values: Vec<f64> = (0..coarse.len())
+            .map(|c| linear(coarse.x_mm(c % coarse.nx), coarse.y_mm(c / coarse.nx)))
+            .collect();
+        let up = upsample(&values, coarse, fine);
+        let (x_max, y_max) = (coarse.x_mm(coarse.nx - 1), coarse.y_mm(coarse.ny - 1));
+        let mut inside = 0;
+        for c in 0..fine.len() {
+            let (x, y) = (fine.x_mm(c % fine.nx), fine.y_mm(c / fine.nx));
+            if x.abs() <= x_max && y.abs() <= y_max {
+                assert!((up[c] - linear(x, y)).abs() < 1e-12, "({x}, {y})");
+                inside += 1;
+            }
+        }
+        assert!(inside > fine.len() / 2);
     }
 }
