@@ -93,19 +93,45 @@ pub struct GenerateOptions {
     pub resume: bool,
     /// Make only this shard's sequences.
     pub shard: Option<Shard>,
+    /// Use this solver rung instead of the scene's (benchmarks).
+    pub solver: Option<SolverKind>,
+}
+
+/// What a `generate` run did.
+#[derive(Debug, Clone, Copy)]
+pub struct GenerateReport {
+    /// Frames simulated by this run.
+    pub frames: usize,
+    /// Wall-clock seconds.
+    pub wall_s: f64,
+    /// Seconds per stage, summed over frames.
+    pub stages: StageTotals,
 }
 
 /// Seconds per pipeline stage, summed over frames.
 #[derive(Debug, Default, Clone, Copy)]
-struct StageTotals {
-    gap_s: f64,
-    contact_s: f64,
-    optics_s: f64,
-    writing_s: f64,
+pub struct StageTotals {
+    /// Gap-field ray casting.
+    pub gap_s: f64,
+    /// Contact solve.
+    pub contact_s: f64,
+    /// Image formation.
+    pub optics_s: f64,
+    /// PNG and EXR encoding and writing.
+    pub writing_s: f64,
+}
+
+impl StageTotals {
+    /// Each stage's share of the total, in percent: [gap, contact, optics, writing].
+    pub fn shares_pct(&self) -> [f64; 4] {
+        let parts = [self.gap_s, self.contact_s, self.optics_s, self.writing_s];
+        let sum = parts.iter().sum::<f64>().max(f64::MIN_POSITIVE);
+        parts.map(|v| 100.0 * v / sum)
+    }
 }
 
 /// Simulates the sequences of `scene_path` (this shard's, not yet recorded) into `out`.
-pub fn generate(scene_path: &Path, out: &Path, options: GenerateOptions) -> Result<()> {
+pub fn generate(scene_path: &Path, out: &Path, options: GenerateOptions) -> Result<GenerateReport> {
     if options.force && options.resume {
         bail!("--force and --resume contradict each other: pick one");
     }
@@ -135,10 +161,13 @@ pub fn generate(scene_path: &Path, out: &Path, options: GenerateOptions) -> Resu
         .filter(|s| options.shard.is_none_or(|sh| s % sh.count == sh.index))
         .filter(|&s| !dataset.has_part(s))
         .collect();
-    let sequences: Vec<SequenceScene> = todo
+    let mut sequences: Vec<SequenceScene> = todo
         .iter()
         .map(|&s| spec.sequence(s))
         .collect::<Result<_, _>>()?;
+    if let Some(solver) = options.solver {
+        sequences.iter_mut().for_each(|s| s.scene.solver = solver);
+    }
     let frames: usize = sequences.iter().map(|s| s.scene.frames().len()).sum();
     let progress = ProgressBar::new(frames as u64).with_style(
         ProgressStyle::with_template(
@@ -153,17 +182,12 @@ pub fn generate(scene_path: &Path, out: &Path, options: GenerateOptions) -> Resu
         .try_for_each(|seq| write_sequence(&dataset, seq, &progress, &totals))?;
     progress.finish_and_clear();
     let wall_s = start.elapsed().as_secs_f64();
+    let stages = *totals.lock().expect("no poisoned lock");
     if frames > 0 {
-        let t = *totals.lock().expect("no poisoned lock");
-        let sum = (t.gap_s + t.contact_s + t.optics_s + t.writing_s).max(f64::MIN_POSITIVE);
-        let pct = |v: f64| 100.0 * v / sum;
+        let [gap, contact, optics, writing] = stages.shares_pct();
         eprintln!(
-            "{frames} frames in {wall_s:.2} s: {:.1} frames/s (gap {:.0} %, contact {:.0} %, optics {:.0} %, writing {:.0} %)",
+            "{frames} frames in {wall_s:.2} s: {:.1} frames/s (gap {gap:.0} %, contact {contact:.0} %, optics {optics:.0} %, writing {writing:.0} %)",
             frames as f64 / wall_s,
-            pct(t.gap_s),
-            pct(t.contact_s),
-            pct(t.optics_s),
-            pct(t.writing_s),
         );
     }
     let complete = dataset
@@ -173,6 +197,41 @@ pub fn generate(scene_path: &Path, out: &Path, options: GenerateOptions) -> Resu
         eprintln!(
             "{}: shard done; the manifest is written when every shard has run",
             out.display()
+        );
+    }
+    Ok(GenerateReport {
+        frames,
+        wall_s,
+        stages,
+    })
+}
+
+/// `sparsh bench SCENE`: generates the scene once per solver rung into a scratch directory and
+/// prints frames/s, the ratio to the first rung, and each stage's share of the time.
+pub fn bench(scene_path: &Path, solvers: &[SolverKind]) -> Result<()> {
+    println!("| solver | frames | frames/s | × first | gap % | contact % | optics % | writing % |");
+    println!("|---|---|---|---|---|---|---|---|");
+    let mut first_fps = None;
+    for &solver in solvers {
+        let scratch = tempfile::tempdir().context("cannot make a scratch directory")?;
+        let report = generate(
+            scene_path,
+            &scratch.path().join("ds"),
+            GenerateOptions {
+                force: false,
+                resume: false,
+                shard: None,
+                solver: Some(solver),
+            },
+        )?;
+        let fps = report.frames as f64 / report.wall_s;
+        let base = *first_fps.get_or_insert(fps);
+        let [gap, contact, optics, writing] = report.stages.shares_pct();
+        println!(
+            "| {} | {} | {fps:.1} | {:.2} | {gap:.0} | {contact:.0} | {optics:.0} | {writing:.0} |",
+            solver.name(),
+            report.frames,
+            fps / base,
         );
     }
     Ok(())

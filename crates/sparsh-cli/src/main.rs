@@ -58,6 +58,14 @@ enum Command {
         #[arg(long, value_name = "K/N")]
         shard: Option<dataset::Shard>,
     },
+    /// Measure the whole pipeline's throughput (frames/s and each stage's share) per solver rung.
+    Bench {
+        /// Scene file (TOML); its output settings decide what is written.
+        scene: PathBuf,
+        /// Solver rungs to compare; the first is the baseline of the ratios.
+        #[arg(long = "solver", default_values = ["geometric", "halfspace", "layered"])]
+        solvers: Vec<sparsh_scene::SolverKind>,
+    },
     /// Check every file of a dataset against the checksums in its manifest.
     Verify {
         /// Dataset directory.
@@ -114,8 +122,11 @@ fn run(cli: Cli) -> Result<()> {
                 force,
                 resume,
                 shard,
+                solver: None,
             },
-        ),
+        )
+        .map(drop),
+        Command::Bench { scene, solvers } => dataset::bench(&scene, &solvers),
         Command::Verify { dir } => dataset::verify(&dir),
         Command::Validate { dir, json } => validate::validate(&dir, json),
     }

@@ -128,6 +128,35 @@ pub enum SolverKind {
     Layered,
 }
 
+impl SolverKind {
+    /// Every rung, cheapest first.
+    pub const ALL: [SolverKind; 3] = [
+        SolverKind::Geometric,
+        SolverKind::Halfspace,
+        SolverKind::Layered,
+    ];
+
+    /// The name used in scene files.
+    pub fn name(self) -> &'static str {
+        match self {
+            SolverKind::Geometric => "geometric",
+            SolverKind::Halfspace => "halfspace",
+            SolverKind::Layered => "layered",
+        }
+    }
+}
+
+impl std::str::FromStr for SolverKind {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<SolverKind, String> {
+        SolverKind::ALL
+            .into_iter()
+            .find(|k| k.name() == s)
+            .ok_or_else(|| format!("unknown solver `{s}` (geometric, halfspace or layered)"))
+    }
+}
+
 /// A ground-truth field channel.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
 #[serde(rename_all = "snake_case")]
