@@ -1,6 +1,7 @@
 //! `sparsh`: the command line of the sparsh tactile simulator.
 
 mod dataset;
+mod pretrain;
 mod validate;
 
 use std::path::PathBuf;
@@ -80,6 +81,24 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Self-supervised pretraining of a ViT encoder (MAE, DINO, I-JEPA, V-JEPA) from a recipe.
+    Pretrain {
+        /// Training recipe (TOML), e.g. assets/ssl/mae_tiny_cpu.toml.
+        #[arg(long)]
+        config: PathBuf,
+        /// Dataset directory (generated or Sparsh pickles); repeat for several.
+        #[arg(long, required = true)]
+        data: Vec<PathBuf>,
+        /// Run directory (log.csv, checkpoint/, encoder.safetensors).
+        #[arg(long)]
+        out: PathBuf,
+        /// Continue the run in --out from its last checkpoint.
+        #[arg(long)]
+        resume: bool,
+        /// Stop after this many steps in total (the schedule keeps the recipe's length).
+        #[arg(long)]
+        max_steps: Option<usize>,
+    },
 }
 
 fn main() -> ExitCode {
@@ -129,5 +148,12 @@ fn run(cli: Cli) -> Result<()> {
         Command::Bench { scene, solvers } => dataset::bench(&scene, &solvers),
         Command::Verify { dir } => dataset::verify(&dir),
         Command::Validate { dir, json } => validate::validate(&dir, json),
+        Command::Pretrain {
+            config,
+            data,
+            out,
+            resume,
+            max_steps,
+        } => pretrain::pretrain(&config, data, out, resume, max_steps),
     }
 }

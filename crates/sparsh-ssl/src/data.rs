@@ -8,8 +8,9 @@
 //!
 //! Layouts read here:
 //! - a directory written by `sparsh generate`: `labels.jsonl` (rows with `frame`, `sequence`,
-//!   `frame_in_sequence`, `force_n`), `frames/NNNNNN.png`, `background.png` (when absent, the
-//!   first frame of each sequence is the background);
+//!   `frame_in_sequence`, `force_n` and optionally `background`, the sequence's no-contact image
+//!   relative to the directory), `frames/NNNNNN.png`; without a `background` field,
+//!   `background.png`, else the first frame of each sequence, is the background;
 //! - the official Sparsh pickles (YCB-Slide / Touch-Slide / Touch-and-Go style): each `*.pkl`
 //!   holds a list of JPEG (or PNG) byte strings — one sequence — either at the top level or as the
 //!   first list value of a dictionary; the background is a `bg*.jpg`/`bg*.png` beside the pickle,
@@ -110,6 +111,8 @@ struct LabelRow {
     frame_in_sequence: usize,
     #[serde(default)]
     force_n: Option<[f32; 3]>,
+    #[serde(default)]
+    background: Option<String>,
 }
 
 impl Dataset {
@@ -177,8 +180,12 @@ impl Dataset {
         let mut sequences = Vec::new();
         for (_, mut rows) in by_seq {
             rows.sort_by_key(|r| r.frame_in_sequence);
-            let first = read_image(&frame_path(rows[0].frame))?;
-            let bg = shared_bg.as_ref().unwrap_or(&first);
+            let bg = match (&rows[0].background, &shared_bg) {
+                (Some(rel), _) => read_image(&dir.join(rel))?,
+                (None, Some(bg)) => bg.clone(),
+                (None, None) => read_image(&frame_path(rows[0].frame))?,
+            };
+            let bg = &bg;
             let frames = rows
                 .par_iter()
                 .map(|r| {
