@@ -1,6 +1,7 @@
 //! `sparsh`: the command line of the sparsh tactile simulator.
 
 mod dataset;
+mod validate;
 
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -70,6 +71,15 @@ enum Command {
         /// Dataset directory.
         dir: PathBuf,
     },
+    /// Check the contact solvers against analytic solutions; exits 1 if a case misses.
+    Validate {
+        /// Directory of validation cases.
+        #[arg(default_value = "scenes/validation")]
+        dir: PathBuf,
+        /// Print JSON instead of a table.
+        #[arg(long)]
+        json: bool,
+    },
 }
 
 fn main() -> ExitCode {
@@ -118,5 +128,6 @@ fn run(cli: Cli) -> Result<()> {
         .map(drop),
         Command::Bench { scene, solvers } => dataset::bench(&scene, &solvers),
         Command::Verify { dir } => dataset::verify(&dir),
+        Command::Validate { dir, json } => validate::validate(&dir, json),
     }
 }

@@ -112,14 +112,27 @@ fn bbox(grid: &Grid, pred: impl Fn(usize) -> bool) -> Option<Rect> {
     r
 }
 
-/// The window around `core`: grown by `grow` of its size (at least 4 cells) on every side,
-/// rounded up to a multiple of 16 cells (few distinct FFT sizes) and kept inside the grid.
+/// The window around `core`: grown by `grow` of its size (at least 2 cells) on every side,
+/// rounded up to a multiple of 8 cells (few distinct FFT sizes) and kept inside the grid.
 fn window_around(grid: &Grid, core: Rect, grow: f64) -> Rect {
     let fit = |lo: usize, hi: usize, n: usize| {
-        let margin = ((grow * (hi - lo) as f64).ceil() as usize).max(4);
-        let want = (hi - lo + 2 * margin).next_multiple_of(16).min(n);
+        let margin = ((grow * (hi - lo) as f64).ceil() as usize).max(2);
+        let want = (hi - lo + 2 * margin).next_multiple_of(8).min(n);
         let centre = (lo + hi) / 2;
         let start = centre.saturating_sub(want / 2).min(n - want);
+        (start, start + want)
+    };
+    let (i0, i1) = fit(core.i0, core.i1, grid.nx);
+    let (j0, j1) = fit(core.j0, core.j1, grid.ny);
+    Rect { i0, i1, j0, j1 }
+}
+
+/// `core` grown to a multiple of `multiple` cells along each axis (fewer distinct FFT sizes),
+/// kept inside the grid.
+fn padded_to(grid: &Grid, core: Rect, multiple: usize) -> Rect {
+    let fit = |lo: usize, hi: usize, n: usize| {
+        let want = (hi - lo).next_multiple_of(multiple).min(n);
+        let start = lo.min(n - want);
         (start, start + want)
     };
     let (i0, i1) = fit(core.i0, core.i1, grid.nx);
@@ -546,7 +559,9 @@ impl ContactSolver for Bem {
             gap[k] < offset_mm || previous.as_ref().is_some_and(|h| h.pressure_kpa[k] > 0.0)
         })
         .unwrap_or_else(|| bbox(&grid, |k| gap[k] <= nearest_mm).expect("a finite gap"));
-        let mut grow = 0.25;
+        // On a half-space the surface only sinks under pressure, so the contact lies inside the
+        // rigid penetration; a layer bulges around its contact and gets a margin.
+        let mut grow = if self.layer.is_some() { 0.25 } else { 0.0 };
         let full = self.spectra(grid.nx, grid.ny);
         let (window, pressure_kpa, uz_into_mm) = loop {
             let window = window_around(&grid, core, grow);
@@ -607,7 +622,7 @@ impl ContactSolver for Bem {
                     if window.width() == grid.nx && window.height() == grid.ny {
                         return Err(self.out_of_validity("contact spreads beyond the grid"));
                     }
-                    grow *= 2.0;
+                    grow = (2.0 * grow).max(0.25);
                 }
             }
         };
@@ -627,20 +642,24 @@ impl ContactSolver for Bem {
             )));
         }
 
-        // Tangential problem on the same window.
-        let spectra = self.spectra(window.width(), window.height());
+        // Tangential problem on the contact's bounding box: tractions vanish outside the
+        // contact and only displacements inside it are needed.
+        let patch = bbox(&grid, |k| contact[k])
+            .map(|r| padded_to(&grid, r, 8))
+            .unwrap_or(window);
+        let spectra = self.spectra(patch.width(), patch.height());
         let mu = self.gel.friction;
-        let bound: Vec<f64> = crop(&grid, window, &pressure_kpa)
+        let bound: Vec<f64> = crop(&grid, patch, &pressure_kpa)
             .iter()
             .map(|p| mu * p)
             .collect();
         let shift = [0, 1].map(|c| {
             let all: Vec<f64> = input.rigid_shift_mm.iter().map(|s| s[c]).collect();
-            crop(&grid, window, &all)
+            crop(&grid, patch, &all)
         });
         let target = [0, 1].map(|c| {
             let prev = match &previous {
-                Some(h) => crop(&grid, window, &h.u_tangential_mm[c]),
+                Some(h) => crop(&grid, patch, &h.u_tangential_mm[c]),
                 None => vec![0.0; shift[c].len()],
             };
             prev.iter()
@@ -649,7 +668,7 @@ impl ContactSolver for Bem {
                 .collect::<Vec<f64>>()
         });
         let initial = [0, 1].map(|c| match &previous {
-            Some(h) => crop(&grid, window, &h.traction_kpa[c]),
+            Some(h) => crop(&grid, patch, &h.traction_kpa[c]),
             None => vec![0.0; bound.len()],
         });
         let (traction_w, slip_increment) =
@@ -667,8 +686,8 @@ impl ContactSolver for Bem {
                 }
             })
             .collect();
-        let slip_full = embed(&grid, window, &slip_w);
-        let traction = [0, 1].map(|c| embed(&grid, window, &traction_w[c]));
+        let slip_full = embed(&grid, patch, &slip_w);
+        let traction = [0, 1].map(|c| embed(&grid, patch, &traction_w[c]));
         let [ux, uy] =
             full.conv
                 .apply_pair([&full.xx, &full.yy, &full.xy], &traction[0], &traction[1]);

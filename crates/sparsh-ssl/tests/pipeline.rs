@@ -1,0 +1,251 @@
+//! Datasets on disk → training runs: generated and pickle layouts, resume reproduces the
+//! uninterrupted loss curve, bad input gives one-line errors naming the culprit.
+
+use std::path::Path;
+
+use image::{Rgb, RgbImage};
+use sparsh_ssl::data::Dataset;
+use sparsh_ssl::recipe::Recipe;
+use sparsh_ssl::train::{RunOptions, run};
+use sparsh_ssl::weights::{load_encoder, save_encoder};
+
+/// A frame of a blob at `(cx, cy)` with brightness `depth` on a flat background (40×30, landscape).
+fn frame(cx: f64, cy: f64, depth: f64) -> RgbImage {
+    RgbImage::from_fn(40, 30, |x, y| {
+        let r2 = (x as f64 - cx).powi(2) + (y as f64 - cy).powi(2);
+        let v = 90.0 + depth * (-r2 / 20.0).exp();
+        Rgb([v as u8, (v * 0.8) as u8, 120])
+    })
+}
+
+/// A dataset in the layout of `sparsh generate`: `seqs` sequences of `len` frames.
+fn write_generated(dir: &Path, seqs: usize, len: usize) {
+    std::fs::create_dir_all(dir.join("frames")).unwrap();
+    frame(0.0, 0.0, 0.0)
+        .save(dir.join("background.png"))
+        .unwrap();
+    let mut labels = String::new();
+    let mut idx = 0;
+    for s in 0..seqs {
+        for t in 0..len {
+            let depth = 10.0 * t as f64;
+            frame(8.0 + 3.0 * s as f64 + t as f64, 15.0, depth)
+                .save(dir.join("frames").join(format!("{idx:06}.png")))
+                .unwrap();
+            labels.push_str(&format!(
+                "{{\"frame\": {idx}, \"sequence\": {s}, \"frame_in_sequence\": {t}, \"time_s\": {}, \
+                 \"force_n\": [{}, 0.0, {}], \"pose\": {{}}, \"slip_state\": \"stick\"}}\n",
+                t as f64 / 60.0,
+                0.01 * s as f64,
+                0.1 * t as f64
+            ));
+            idx += 1;
+        }
+    }
+    std::fs::write(dir.join("labels.jsonl"), labels).unwrap();
+}
+
+fn recipe(steps: usize) -> Recipe {
+    Recipe::parse(&format!(
+        "objective = \"mae\"\nseed = 5\n[encoder]\nimg_size = [32, 24]\npatch_size = 8\nembed_dim = 32\n\
+         depth = 2\nnum_heads = 4\n[mae]\ndecoder_dim = 32\ndecoder_depth = 1\ndecoder_heads = 4\n\
+         [optim]\nsteps = {steps}\nbatch_size = 4\nlr = 1e-3\nwarmup_steps = 2\n\
+         [log]\ncheckpoint_every = 2\nprobe_every = 3\nprobe_max_samples = 64\n"
+    ))
+    .unwrap()
+}
+
+fn losses(out: &Path) -> Vec<(usize, f64)> {
+    std::fs::read_to_string(out.join("log.csv"))
+        .unwrap()
+        .lines()
+        .skip(1)
+        .filter_map(|l| {
+            let mut f = l.split(',');
+            let step = f.next()?.parse().ok()?;
+            let loss = f.next()?.parse().ok()?;
+            Some((step, loss))
+        })
+        .collect()
+}
+
+#[test]
+fn resume_continues_the_same_loss_curve() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("data");
+    write_generated(&data, 5, 8);
+    let r = recipe(6);
+    let opts = |out: &str, resume, max_steps| RunOptions {
+        data: vec![data.clone()],
+        out: tmp.path().join(out),
+        resume,
+        max_steps,
+    };
+    let full = run(&r, &opts("full", false, None), &mut |_| {}).unwrap();
+    assert_eq!(full.steps, 6);
+    assert!(full.probe_initial.is_some() && full.probe_final.is_some());
+    let a = losses(&tmp.path().join("full"));
+    assert_eq!(
+        a.iter().map(|x| x.0).collect::<Vec<_>>(),
+        (0..6).collect::<Vec<_>>()
+    );
+
+    let first = run(&r, &opts("split", false, Some(3)), &mut |_| {}).unwrap();
+    assert_eq!(first.steps, 3);
+    // a second start without --resume refuses to overwrite the run
+    let err = run(&r, &opts("split", false, None), &mut |_| {})
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("--resume"), "{err}");
+    let second = run(&r, &opts("split", true, None), &mut |_| {}).unwrap();
+    assert_eq!(second.steps, 6);
+    let b = losses(&tmp.path().join("split"));
+    assert_eq!(a.len(), b.len());
+    for ((sa, la), (sb, lb)) in a.iter().zip(&b) {
+        assert_eq!(sa, sb);
+        assert!(
+            (la - lb).abs() <= 1e-6 * la.abs().max(1e-3),
+            "step {sa}: {la} vs {lb}"
+        );
+    }
+    let out = tmp.path().join("split");
+    assert!(!out.join("checkpoint.tmp").exists());
+    assert!(out.join("checkpoint/model.bpk").is_file());
+    // the final encoder loads back under the official key names
+    let enc = r.encoder_config().unwrap();
+    let device = burn::prelude::Device::flex();
+    load_encoder(enc.init(&device), &out.join("encoder.safetensors"), None).unwrap();
+}
+
+#[test]
+fn pickle_layout_loads_as_sequences() {
+    use serde_pickle::Value;
+    let tmp = tempfile::tempdir().unwrap();
+    let obj = tmp.path().join("obj");
+    std::fs::create_dir_all(&obj).unwrap();
+    let jpeg = |img: &RgbImage| {
+        let mut buf = std::io::Cursor::new(Vec::new());
+        img.write_to(&mut buf, image::ImageFormat::Jpeg).unwrap();
+        Value::Bytes(buf.into_inner())
+    };
+    for k in 0..2 {
+        let frames: Vec<Value> = (0..7)
+            .map(|t| jpeg(&frame(10.0 + t as f64, 12.0, 60.0)))
+            .collect();
+        let bytes =
+            serde_pickle::value_to_vec(&Value::List(frames), serde_pickle::SerOptions::new())
+                .unwrap();
+        std::fs::write(obj.join(format!("dataset_{k}.pkl")), bytes).unwrap();
+    }
+    frame(0.0, 0.0, 0.0).save(obj.join("bg_0.jpg")).unwrap();
+    let d = Dataset::load(tmp.path(), [32, 24]).unwrap();
+    assert_eq!(d.sequences.len(), 2);
+    assert_eq!(d.num_frames(), 14);
+    assert_eq!(d.sequences[0].frames[0].len(), 3 * 32 * 24);
+    // the blob is brighter than the background: some red values well above the 0.5 grey
+    assert!(
+        d.sequences[0].frames[3]
+            .iter()
+            .take(32 * 24)
+            .any(|&v| v > 0.6)
+    );
+}
+
+#[test]
+fn bad_inputs_are_one_line_errors() {
+    let tmp = tempfile::tempdir().unwrap();
+    let one_line = |e: String, needle: &str| {
+        assert!(
+            e.contains(needle) && !e.contains('\n'),
+            "`{e}` should name `{needle}`"
+        );
+    };
+    // a directory with no frames
+    let empty = tmp.path().join("empty");
+    std::fs::create_dir_all(&empty).unwrap();
+    one_line(
+        Dataset::load(&empty, [32, 24]).unwrap_err().to_string(),
+        "empty",
+    );
+    // a labels row missing its field
+    let broken = tmp.path().join("broken");
+    std::fs::create_dir_all(&broken).unwrap();
+    std::fs::write(broken.join("labels.jsonl"), "{\"frame\": 0}\n").unwrap();
+    one_line(
+        Dataset::load(&broken, [32, 24]).unwrap_err().to_string(),
+        "labels.jsonl",
+    );
+    // a pickle that is not a list of frames
+    let pk = tmp.path().join("pk");
+    std::fs::create_dir_all(&pk).unwrap();
+    std::fs::write(pk.join("x.pkl"), b"not a pickle").unwrap();
+    one_line(
+        Dataset::load(&pk, [32, 24]).unwrap_err().to_string(),
+        "x.pkl",
+    );
+
+    // truncated and foreign safetensors
+    let r = recipe(2);
+    let device = burn::prelude::Device::flex();
+    let enc = r.encoder_config().unwrap();
+    let file = tmp.path().join("enc.safetensors");
+    save_encoder(&enc.init(&device), &file).unwrap();
+    let bytes = std::fs::read(&file).unwrap();
+    let cut = tmp.path().join("cut.safetensors");
+    std::fs::write(&cut, &bytes[..bytes.len() / 2]).unwrap();
+    one_line(
+        load_encoder(enc.init(&device), &cut, None)
+            .unwrap_err()
+            .to_string(),
+        "cut.safetensors",
+    );
+    let wider = enc.clone().with_embed_dim(64);
+    one_line(
+        load_encoder(wider.init(&device), &file, None)
+            .unwrap_err()
+            .to_string(),
+        "shape",
+    );
+    let deeper = enc.clone().with_depth(1);
+    one_line(
+        load_encoder(deeper.init(&device), &file, None)
+            .unwrap_err()
+            .to_string(),
+        "blocks.1",
+    );
+
+    // a truncated training checkpoint
+    let data = tmp.path().join("data");
+    write_generated(&data, 1, 8);
+    let opts = RunOptions {
+        data: vec![data],
+        out: tmp.path().join("run"),
+        resume: false,
+        max_steps: Some(2),
+    };
+    run(&r, &opts, &mut |_| {}).unwrap();
+    let model = opts.out.join("checkpoint/model.bpk");
+    let bytes = std::fs::read(&model).unwrap();
+    std::fs::write(&model, &bytes[..bytes.len() / 3]).unwrap();
+    let resume = RunOptions {
+        resume: true,
+        max_steps: None,
+        ..opts.clone()
+    };
+    one_line(
+        run(&r, &resume, &mut |_| {}).unwrap_err().to_string(),
+        "model.bpk",
+    );
+    // a checkpoint of another architecture
+    std::fs::write(&model, &bytes).unwrap();
+    let other = Recipe::parse(
+        &toml::to_string(&r)
+            .unwrap()
+            .replace("embed_dim = 32", "embed_dim = 64"),
+    )
+    .unwrap();
+    one_line(
+        run(&other, &resume, &mut |_| {}).unwrap_err().to_string(),
+        "model.bpk",
+    );
+}
