@@ -17,6 +17,7 @@
 #![warn(missing_docs)]
 
 mod exr_io;
+pub mod sparsh_pkl;
 mod writer;
 
 pub use exr_io::{ExrChannels, read_exr_channels, write_exr_channels};
