@@ -526,3 +526,60 @@ fn bad_generate_options_fail_with_one_line() {
     let scene = write_scene(tmp.path(), SMALL_SCENE);
     assert_user_error(&generate(&scene, &blocked.join("ds"), &[]), "file-not-dir");
 }
+
+#[test]
+fn export_writes_the_official_sparsh_layout() {
+    let tmp = tempfile::tempdir().unwrap();
+    let scene = write_scene(tmp.path(), FAMILY_SCENE);
+    let ds = tmp.path().join("ds");
+    assert!(generate(&scene, &ds, &[]).status.success());
+    let out_dir = tmp.path().join("pkl");
+    let out = sparsh(&[
+        "export",
+        ds.to_str().unwrap(),
+        "--format",
+        "sparsh-pkl",
+        "--out",
+        out_dir.to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let labels = std::fs::read_to_string(ds.join("labels.jsonl")).unwrap();
+    let rows: Vec<serde_json::Value> = labels
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    for sequence in [0usize, 12] {
+        let seq_rows: Vec<&serde_json::Value> =
+            rows.iter().filter(|r| r["sequence"] == sequence).collect();
+        let frames = sparsh_data::sparsh_pkl::read_frames_pickle(
+            &out_dir.join(format!("frames/{sequence:06}/dataset_0.pkl")),
+        )
+        .unwrap();
+        assert_eq!(frames.len(), seq_rows.len());
+        let labels = sparsh_data::sparsh_pkl::read_slip_forces(
+            &out_dir.join(format!("labels/{sequence:06}/dataset_slip_forces.pkl")),
+        )
+        .unwrap();
+        for (k, row) in seq_rows.iter().enumerate() {
+            assert_eq!(labels.forces[k][2], row["force_n"][2].as_f64().unwrap());
+            assert_eq!(
+                labels.slip_label[k] == 1,
+                row["slip_cone"].as_bool().unwrap()
+            );
+        }
+        assert!(
+            out_dir
+                .join(format!("frames/{sequence:06}/bg_0.jpg"))
+                .is_file()
+        );
+    }
+    let out = sparsh(&[
+        "export",
+        tmp.path().join("nowhere").to_str().unwrap(),
+        "--format",
+        "sparsh-pkl",
+        "--out",
+        out_dir.to_str().unwrap(),
+    ]);
+    assert_user_error(&out, "labels.jsonl");
+}

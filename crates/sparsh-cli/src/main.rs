@@ -67,6 +67,18 @@ enum Command {
         #[arg(long = "solver", default_values = ["geometric", "halfspace", "layered"])]
         solvers: Vec<sparsh_scene::SolverKind>,
     },
+    /// Write a dataset in another project's layout.
+    Export {
+        /// Dataset directory written by `generate`.
+        dir: PathBuf,
+        /// Target layout: `sparsh-pkl`, the official Sparsh code's pickles of JPEG frames and
+        /// force/slip labels.
+        #[arg(long, value_parser = ["sparsh-pkl"])]
+        format: String,
+        /// Output directory.
+        #[arg(long)]
+        out: PathBuf,
+    },
     /// Check every file of a dataset against the checksums in its manifest.
     Verify {
         /// Dataset directory.
@@ -147,6 +159,18 @@ fn run(cli: Cli) -> Result<()> {
         .map(drop),
         Command::Bench { scene, solvers } => dataset::bench(&scene, &solvers),
         Command::Verify { dir } => dataset::verify(&dir),
+        Command::Export {
+            dir,
+            format: _,
+            out,
+        } => {
+            let sequences = sparsh_data::sparsh_pkl::export(&dir, &out)?;
+            eprintln!(
+                "{}: {sequences} sequences in the sparsh-pkl layout",
+                out.display()
+            );
+            Ok(())
+        }
         Command::Validate { dir, json } => validate::validate(&dir, json),
         Command::Pretrain {
             config,

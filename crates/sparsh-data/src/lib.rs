@@ -17,6 +17,7 @@
 #![warn(missing_docs)]
 
 mod exr_io;
+pub mod sparsh_pkl;
 mod writer;
 
 pub use exr_io::{ExrChannels, read_exr_channels, write_exr_channels};
@@ -28,8 +29,8 @@ pub use writer::{
 /// Failures reading or writing a dataset; each names the file.
 #[derive(Debug, thiserror::Error)]
 pub enum DataError {
-    /// A file system operation failed.
-    #[error("{path}: {source}")]
+    /// A file system operation failed (the reason is the error's source).
+    #[error("{path}")]
     Io {
         /// File or directory.
         path: std::path::PathBuf,

@@ -5,8 +5,8 @@ use std::path::PathBuf;
 /// A scene, preset or mesh that cannot be used.
 #[derive(Debug, thiserror::Error)]
 pub enum SceneError {
-    /// The file could not be read.
-    #[error("{path}: cannot read: {source}")]
+    /// The file could not be read (the reason is the error's source).
+    #[error("{path}: cannot read")]
     Io {
         /// File that failed.
         path: PathBuf,

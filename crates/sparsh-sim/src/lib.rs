@@ -286,10 +286,10 @@ mod tests {
         let up = upsample(&values, coarse, fine);
         let (x_max, y_max) = (coarse.x_mm(coarse.nx - 1), coarse.y_mm(coarse.ny - 1));
         let mut inside = 0;
-        for c in 0..fine.len() {
+        for (c, value) in up.iter().enumerate() {
             let (x, y) = (fine.x_mm(c % fine.nx), fine.y_mm(c / fine.nx));
             if x.abs() <= x_max && y.abs() <= y_max {
-                assert!((up[c] - linear(x, y)).abs() < 1e-12, "({x}, {y})");
+                assert!((value - linear(x, y)).abs() < 1e-12, "({x}, {y})");
                 inside += 1;
             }
         }

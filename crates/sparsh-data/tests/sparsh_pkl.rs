@@ -1,0 +1,90 @@
+//! The official Sparsh layouts: our writer against our reader and, when Python is present,
+//! against Python's own pickle module.
+
+use image::RgbImage;
+use sparsh_data::sparsh_pkl::{
+    SlipForces, read_frames_pickle, read_slip_forces, write_frames_pickle, write_slip_forces,
+};
+
+fn labels() -> SlipForces {
+    SlipForces {
+        in_contact: vec![false, true, true],
+        indexes: vec![0, 1, 2],
+        forces: vec![[0.0, 0.0, 0.0], [0.1, -0.2, 1.5], [0.9, 0.0, 0.5]],
+        slip_label: vec![0, 0, 1],
+    }
+}
+
+fn frames() -> Vec<RgbImage> {
+    (0..3)
+        .map(|k| {
+            RgbImage::from_fn(40, 30, |x, y| {
+                image::Rgb([x as u8 * 4, y as u8 * 5, 60 * k])
+            })
+        })
+        .collect()
+}
+
+#[test]
+fn labels_and_frames_round_trip() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("dataset_slip_forces.pkl");
+    write_slip_forces(&path, &labels()).unwrap();
+    assert_eq!(read_slip_forces(&path).unwrap(), labels());
+    let path = dir.path().join("dataset_0.pkl");
+    write_frames_pickle(&path, &frames()).unwrap();
+    let encoded = read_frames_pickle(&path).unwrap();
+    assert_eq!(encoded.len(), 3);
+    for (jpeg, original) in encoded.iter().zip(frames()) {
+        let decoded = image::load_from_memory(jpeg).unwrap().to_rgb8();
+        assert_eq!(decoded.dimensions(), original.dimensions());
+        let mean_error: f64 = decoded
+            .as_raw()
+            .iter()
+            .zip(original.as_raw())
+            .map(|(a, b)| (*a as f64 - *b as f64).abs())
+            .sum::<f64>()
+            / decoded.as_raw().len() as f64;
+        assert!(mean_error < 3.0, "JPEG error {mean_error}");
+    }
+}
+
+#[test]
+fn python_reads_the_pickles() {
+    if std::process::Command::new("python3")
+        .arg("--version")
+        .output()
+        .is_err()
+    {
+        eprintln!("python3 not found: skipping the Python cross-check");
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let labels_path = dir.path().join("dataset_slip_forces.pkl");
+    let frames_path = dir.path().join("dataset_0.pkl");
+    write_slip_forces(&labels_path, &labels()).unwrap();
+    write_frames_pickle(&frames_path, &frames()).unwrap();
+    let script = r#"
+import pickle, sys
+d = pickle.load(open(sys.argv[1], "rb"))
+t = d["trajectories"]
+f = pickle.load(open(sys.argv[2], "rb"))
+assert all(isinstance(b, bytes) and b[:2] == b"\xff\xd8" for b in f), "JPEG bytes"
+print(len(f), d["in_contact"], t["indexes"], t["forces"][1], t["slip_label"])
+"#;
+    let out = std::process::Command::new("python3")
+        .args(["-c", script])
+        .arg(&labels_path)
+        .arg(&frames_path)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert_eq!(
+        String::from_utf8_lossy(&out.stdout).trim(),
+        "3 [False, True, True] [0, 1, 2] [0.1, -0.2, 1.5] [0, 0, 1]"
+    );
+}
