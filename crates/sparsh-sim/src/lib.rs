@@ -202,31 +202,25 @@ fn crop(fields: &Fields, margin: usize, view: Grid) -> Fields {
     if margin == 0 {
         return fields.clone();
     }
+    fn take<T: Copy>(v: &[T], nx: usize, margin: usize, view: Grid) -> Vec<T> {
+        (0..view.ny)
+            .flat_map(|j| {
+                let row = (j + margin) * nx + margin;
+                v[row..row + view.nx].iter().copied()
+            })
+            .collect()
+    }
     let nx = fields.grid.nx;
-    let take = |v: &[f64]| -> Vec<f64> {
-        (0..view.ny)
-            .flat_map(|j| {
-                let row = (j + margin) * nx + margin;
-                v[row..row + view.nx].iter().copied()
-            })
-            .collect()
-    };
-    let take_mask = |v: &[bool]| -> Vec<bool> {
-        (0..view.ny)
-            .flat_map(|j| {
-                let row = (j + margin) * nx + margin;
-                v[row..row + view.nx].iter().copied()
-            })
-            .collect()
-    };
+    let take_f = |v: &[f64]| take(v, nx, margin, view);
+    let take_mask = |v: &[bool]| take(v, nx, margin, view);
     Fields {
         grid: view,
-        ux_mm: take(&fields.ux_mm),
-        uy_mm: take(&fields.uy_mm),
-        uz_mm: take(&fields.uz_mm),
-        pressure_kpa: take(&fields.pressure_kpa),
-        traction_x_kpa: take(&fields.traction_x_kpa),
-        traction_y_kpa: take(&fields.traction_y_kpa),
+        ux_mm: take_f(&fields.ux_mm),
+        uy_mm: take_f(&fields.uy_mm),
+        uz_mm: take_f(&fields.uz_mm),
+        pressure_kpa: take_f(&fields.pressure_kpa),
+        traction_x_kpa: take_f(&fields.traction_x_kpa),
+        traction_y_kpa: take_f(&fields.traction_y_kpa),
         contact: take_mask(&fields.contact),
         slip: take_mask(&fields.slip),
         force_n: fields.force_n,
