@@ -34,7 +34,7 @@ impl Default for BemOptions {
     fn default() -> Self {
         BemOptions {
             normal_tolerance: 1e-10,
-            tangential_tolerance: 1e-7,
+            tangential_tolerance: 1e-6,
             max_iterations: 5000,
         }
     }
