@@ -33,7 +33,7 @@ pub struct BemOptions {
 impl Default for BemOptions {
     fn default() -> Self {
         BemOptions {
-            normal_tolerance: 1e-10,
+            normal_tolerance: 1e-8,
             tangential_tolerance: 1e-6,
             max_iterations: 5000,
         }
@@ -547,7 +547,8 @@ impl ContactSolver for Bem {
         }
         let e_star = self.gel.effective_modulus_kpa();
         let da_n = grid.cell_area_mm2() * 1e-3;
-        let previous = self.history.take();
+        // A frame that fails leaves the history of the last good frame in place.
+        let previous = self.history.clone();
 
         // Candidate region: rigid penetration at the expected approach, and the last contact.
         let mut offset_mm = match (load_n, &previous) {
