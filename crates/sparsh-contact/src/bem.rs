@@ -344,6 +344,13 @@ impl Bem {
                 }
             }
             conjugate = !overlap;
+            if p.iter().all(|&v| v == 0.0) {
+                // The step lifted every cell off (a guess far too stiff, e.g. a flat face pressed
+                // uniformly): halve the previous pressures and restart the conjugate directions.
+                p = p_old.iter().map(|v| 0.5 * v).collect();
+                conjugate = false;
+                continue;
+            }
             if let Some(load) = load_n {
                 let total = p.iter().sum::<f64>() * da;
                 p.iter_mut().for_each(|v| *v *= load / total);
@@ -572,6 +579,12 @@ impl ContactSolver for Bem {
                 Some(h) => crop(&grid, window, &h.pressure_kpa),
                 None => vec![0.0; gap_w.len()],
             };
+            // No pressure where the indenter has moved away from a cell altogether.
+            for (p, g) in initial.iter_mut().zip(&gap_w) {
+                if !g.is_finite() {
+                    *p = 0.0;
+                }
+            }
             if initial.iter().all(|&p| p == 0.0) {
                 let penetrating = gap_w.iter().filter(|&&g| g < offset_mm).count().max(1);
                 let radius_mm = (penetrating as f64 * grid.cell_area_mm2() / 3.0).sqrt();
