@@ -174,7 +174,7 @@ impl Bem {
 
     /// The bonded-layer rung: the gel of `gel.thickness_mm` on a rigid base, normal compliance of
     /// Carbone & Mangialardi (2008, eq. A.30) as a real-space correction to Love's coefficients
-    /// ([`crate::kernels`]). The tangential coefficients stay those of the half-space, an
+    /// (see the crate README). The tangential coefficients stay those of the half-space, an
     /// approximation that underestimates the tangential stiffness once the contact radius
     /// approaches the thickness.
     pub fn layered(gel: Gel, grid: Grid) -> Bem {
