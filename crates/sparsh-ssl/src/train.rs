@@ -30,6 +30,17 @@ use crate::recipe::{ObjectiveKind, Recipe};
 use crate::rng::Rng;
 use crate::vit::Vit;
 
+static INIT_LOCK: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
+/// Runs `f` (a model initialization) with burn's random generator seeded by `seed`, holding a
+/// process-wide lock: burn's generator is global, so initializations running at the same time
+/// on other threads would otherwise interleave their draws and break determinism.
+pub fn seeded<T>(device: &Device, seed: u64, f: impl FnOnce() -> T) -> T {
+    let _guard = INIT_LOCK.lock().unwrap_or_else(|e| e.into_inner());
+    device.seed(seed);
+    f()
+}
+
 /// Writes `bytes` to `path` through a temporary file and a rename.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), Error> {
     let tmp = path.with_extension("tmp-write");
@@ -72,14 +83,22 @@ pub struct StepReport {
 impl Trainee {
     /// A freshly initialized model for `recipe`.
     pub fn init(recipe: &Recipe, device: &Device) -> Result<Self, Error> {
-        device.seed(recipe.seed);
-        Ok(match recipe.objective {
-            ObjectiveKind::Mae => Trainee::Mae(recipe.mae_config()?.init(device)),
-            ObjectiveKind::Dino => Trainee::Dino(recipe.dino_config()?.init(device)),
+        let (mae, dino, jepa) = match recipe.objective {
+            ObjectiveKind::Mae => (Some(recipe.mae_config()?), None, None),
+            ObjectiveKind::Dino => (None, Some(recipe.dino_config()?), None),
             ObjectiveKind::Ijepa | ObjectiveKind::Vjepa => {
-                Trainee::Jepa(recipe.jepa_config()?.init(device))
+                (None, None, Some(recipe.jepa_config()?))
             }
-        })
+        };
+        Ok(seeded(device, recipe.seed, || {
+            if let Some(c) = mae {
+                Trainee::Mae(c.init(device))
+            } else if let Some(c) = dino {
+                Trainee::Dino(c.init(device))
+            } else {
+                Trainee::Jepa(jepa.expect("one objective").init(device))
+            }
+        }))
     }
 
     /// The encoder being pretrained.
@@ -319,6 +338,17 @@ pub fn run(
             &opts.out,
             "already holds a run; pass --resume or choose another --out",
         ));
+    }
+    if opts.resume && !ckpt.exists() {
+        // an interrupted checkpoint swap: the new one is complete in `.tmp`, or the old one is
+        // still in `.old`
+        for side in ["checkpoint.tmp", "checkpoint.old"] {
+            let cand = opts.out.join(side);
+            if cand.join("state.json").is_file() && cand.join("encoder.safetensors").is_file() {
+                std::fs::rename(&cand, &ckpt).map_err(|e| Error::file(&cand, e))?;
+                break;
+            }
+        }
     }
     if opts.resume && !ckpt.join("state.json").is_file() {
         return Err(Error::file(&ckpt, "no checkpoint to resume from"));
