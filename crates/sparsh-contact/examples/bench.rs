@@ -2,7 +2,8 @@
 //! diameter pressed 0.3 mm into the gel in 30 frames, then slid 0.6 mm along +x in 90 frames
 //! (stick, partial slip, gross sliding). Run with RAYON_NUM_THREADS=1 or 2.
 //!
-//! `cargo run --release --example bench -- [halfspace|layered] [normal|slip]`
+//! `cargo run --release --example bench -- [halfspace|layered] [normal|slip]`, or
+//! `cargo run --release --example bench -- scene <scene.toml>` to time a scene's contact solves.
 use std::time::Instant;
 
 use glam::DVec3;
@@ -11,6 +12,45 @@ use sparsh_scene::{GapField, Gel, Grid, Indenter, IndenterSpec, Pose, ShapeKind,
 
 fn main() {
     let args: Vec<String> = std::env::args().collect();
+    if args.get(1).map(String::as_str) == Some("scene") {
+        let scene = sparsh_scene::Scene::load(std::path::Path::new(&args[2])).expect("scene");
+        let grid = scene.grid();
+        let mut solver = solver_for(scene.solver, &scene.gel, grid);
+        let (mut total, mut worst, mut previous) = (0.0f64, 0.0f64, None::<Pose>);
+        let frames = scene.frames();
+        for f in &frames {
+            let gap = GapField::cast(&scene.indenter, &f.pose, grid);
+            let shift = match &previous {
+                Some(p) => rigid_shift_mm(p, &f.pose, &gap),
+                None => vec![[0.0; 2]; grid.len()],
+            };
+            let normal = f
+                .normal_force_n
+                .map_or(NormalControl::Approach, NormalControl::Force);
+            let start = Instant::now();
+            solver
+                .solve(&ContactInput {
+                    gap: &gap,
+                    normal,
+                    rigid_shift_mm: &shift,
+                })
+                .expect("solve");
+            let t = start.elapsed().as_secs_f64();
+            total += t;
+            worst = worst.max(t);
+            previous = Some(f.pose);
+        }
+        println!(
+            "{}: {:?} {:.1} ms/frame mean, {:.1} ms worst, {} frames (threads {})",
+            args[2],
+            scene.solver,
+            1e3 * total / frames.len() as f64,
+            1e3 * worst,
+            frames.len(),
+            rayon::current_num_threads()
+        );
+        return;
+    }
     let kind = match args.get(1).map(String::as_str) {
         Some("layered") => SolverKind::Layered,
         _ => SolverKind::Halfspace,

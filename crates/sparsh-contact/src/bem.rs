@@ -33,8 +33,8 @@ pub struct BemOptions {
 impl Default for BemOptions {
     fn default() -> Self {
         BemOptions {
-            normal_tolerance: 1e-10,
-            tangential_tolerance: 1e-7,
+            normal_tolerance: 1e-8,
+            tangential_tolerance: 1e-6,
             max_iterations: 5000,
         }
     }
@@ -174,7 +174,7 @@ impl Bem {
 
     /// The bonded-layer rung: the gel of `gel.thickness_mm` on a rigid base, normal compliance of
     /// Carbone & Mangialardi (2008, eq. A.30) as a real-space correction to Love's coefficients
-    /// ([`crate::kernels`]). The tangential coefficients stay those of the half-space, an
+    /// (see the crate README). The tangential coefficients stay those of the half-space, an
     /// approximation that underestimates the tangential stiffness once the contact radius
     /// approaches the thickness.
     pub fn layered(gel: Gel, grid: Grid) -> Bem {
@@ -344,6 +344,13 @@ impl Bem {
                 }
             }
             conjugate = !overlap;
+            if p.iter().all(|&v| v == 0.0) {
+                // The step lifted every cell off (a guess far too stiff, e.g. a flat face pressed
+                // uniformly): halve the previous pressures and restart the conjugate directions.
+                p = p_old.iter().map(|v| 0.5 * v).collect();
+                conjugate = false;
+                continue;
+            }
             if let Some(load) = load_n {
                 let total = p.iter().sum::<f64>() * da;
                 p.iter_mut().for_each(|v| *v *= load / total);
@@ -547,7 +554,8 @@ impl ContactSolver for Bem {
         }
         let e_star = self.gel.effective_modulus_kpa();
         let da_n = grid.cell_area_mm2() * 1e-3;
-        let previous = self.history.take();
+        // A frame that fails leaves the history of the last good frame in place.
+        let previous = self.history.clone();
 
         // Candidate region: rigid penetration at the expected approach, and the last contact.
         let mut offset_mm = match (load_n, &previous) {
@@ -571,6 +579,12 @@ impl ContactSolver for Bem {
                 Some(h) => crop(&grid, window, &h.pressure_kpa),
                 None => vec![0.0; gap_w.len()],
             };
+            // No pressure where the indenter has moved away from a cell altogether.
+            for (p, g) in initial.iter_mut().zip(&gap_w) {
+                if !g.is_finite() {
+                    *p = 0.0;
+                }
+            }
             if initial.iter().all(|&p| p == 0.0) {
                 let penetrating = gap_w.iter().filter(|&&g| g < offset_mm).count().max(1);
                 let radius_mm = (penetrating as f64 * grid.cell_area_mm2() / 3.0).sqrt();

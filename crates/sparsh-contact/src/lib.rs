@@ -5,6 +5,12 @@
 //! compresses the gel; tractions `qx, qy` are the shear stresses the indenter applies to the gel
 //! surface along +x, +y; `uz < 0` where the surface is pushed towards the camera. Units: mm, kPa,
 //! N (1 kPa · 1 mm² = 1 mN).
+//!
+//! Rungs: [`Geometric`] (no physics claims) and [`Bem`] (`halfspace` and `layered`: boundary
+//! elements with Polonsky–Keer normal contact and incremental Coulomb friction). The BEM rungs
+//! neglect normal–tangential coupling (Goodman's approximation, exact at ν = 0.5): `uz` comes from
+//! the pressure, `ux, uy` from the tractions. [`mod@reference`] holds the analytic solutions and
+//! [`validation`] the cases behind `sparsh validate`.
 #![warn(missing_docs)]
 
 mod bem;
