@@ -95,6 +95,8 @@ pub struct GenerateOptions {
     pub shard: Option<Shard>,
     /// Use this solver rung instead of the scene's (benchmarks).
     pub solver: Option<SolverKind>,
+    /// Use this mechanics stride instead of the scene's (benchmarks).
+    pub mechanics_stride: Option<usize>,
 }
 
 /// What a `generate` run did.
@@ -165,8 +167,15 @@ pub fn generate(scene_path: &Path, out: &Path, options: GenerateOptions) -> Resu
         .iter()
         .map(|&s| spec.sequence(s))
         .collect::<Result<_, _>>()?;
-    if let Some(solver) = options.solver {
-        sequences.iter_mut().for_each(|s| s.scene.solver = solver);
+    for seq in &mut sequences {
+        let scene = &mut seq.scene;
+        scene.solver = options.solver.unwrap_or(scene.solver);
+        let stride = options.mechanics_stride.unwrap_or(scene.mechanics_stride);
+        let (w, h) = (scene.sensor.width_px, scene.sensor.height_px);
+        if stride == 0 || !w.is_multiple_of(stride) || !h.is_multiple_of(stride) {
+            bail!("mechanics stride {stride} must be ≥ 1 and divide the image size {w}×{h}");
+        }
+        scene.mechanics_stride = stride;
     }
     let frames: usize = sequences.iter().map(|s| s.scene.frames().len()).sum();
     let progress = ProgressBar::new(frames as u64).with_style(
@@ -206,13 +215,19 @@ pub fn generate(scene_path: &Path, out: &Path, options: GenerateOptions) -> Resu
     })
 }
 
-/// `sparsh bench SCENE`: generates the scene once per solver rung into a scratch directory and
-/// prints frames/s, the ratio to the first rung, and each stage's share of the time.
-pub fn bench(scene_path: &Path, solvers: &[SolverKind]) -> Result<()> {
-    println!("| solver | frames | frames/s | × first | gap % | contact % | optics % | writing % |");
-    println!("|---|---|---|---|---|---|---|---|");
+/// `sparsh bench SCENE`: generates the scene once per solver rung and mechanics stride into a
+/// scratch directory and prints frames/s, the ratio to the first run, and each stage's share of
+/// the time.
+pub fn bench(scene_path: &Path, solvers: &[SolverKind], strides: &[usize]) -> Result<()> {
+    println!(
+        "| solver | stride | frames | frames/s | × first | gap % | contact % | optics % | writing % |"
+    );
+    println!("|---|---|---|---|---|---|---|---|---|");
     let mut first_fps = None;
-    for &solver in solvers {
+    for (&solver, &stride) in solvers
+        .iter()
+        .flat_map(|s| strides.iter().map(move |k| (s, k)))
+    {
         let scratch = tempfile::tempdir().context("cannot make a scratch directory")?;
         let report = generate(
             scene_path,
@@ -222,13 +237,14 @@ pub fn bench(scene_path: &Path, solvers: &[SolverKind]) -> Result<()> {
                 resume: false,
                 shard: None,
                 solver: Some(solver),
+                mechanics_stride: Some(stride),
             },
         )?;
         let fps = report.frames as f64 / report.wall_s;
         let base = *first_fps.get_or_insert(fps);
         let [gap, contact, optics, writing] = report.stages.shares_pct();
         println!(
-            "| {} | {} | {fps:.1} | {:.2} | {gap:.0} | {contact:.0} | {optics:.0} | {writing:.0} |",
+            "| {} | {stride} | {} | {fps:.1} | {:.2} | {gap:.0} | {contact:.0} | {optics:.0} | {writing:.0} |",
             solver.name(),
             report.frames,
             fps / base,

@@ -66,6 +66,9 @@ enum Command {
         /// Solver rungs to compare; the first is the baseline of the ratios.
         #[arg(long = "solver", default_values = ["geometric", "halfspace", "layered"])]
         solvers: Vec<sparsh_scene::SolverKind>,
+        /// Mechanics strides to compare (pixels per contact cell).
+        #[arg(long = "stride", default_values = ["1", "2", "4"])]
+        strides: Vec<usize>,
     },
     /// Write a dataset in another project's layout.
     Export {
@@ -154,10 +157,15 @@ fn run(cli: Cli) -> Result<()> {
                 resume,
                 shard,
                 solver: None,
+                mechanics_stride: None,
             },
         )
         .map(drop),
-        Command::Bench { scene, solvers } => dataset::bench(&scene, &solvers),
+        Command::Bench {
+            scene,
+            solvers,
+            strides,
+        } => dataset::bench(&scene, &solvers, &strides),
         Command::Verify { dir } => dataset::verify(&dir),
         Command::Export {
             dir,

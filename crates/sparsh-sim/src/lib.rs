@@ -110,7 +110,7 @@ impl Simulator {
     fn simulate(&mut self, target: FrameTarget) -> Result<Frame, SimError> {
         let grid = self.scene.mechanics_grid();
         let start = Instant::now();
-        let gap = finite_gap(GapField::cast(&self.scene.indenter, &target.pose, grid));
+        let gap = GapField::cast(&self.scene.indenter, &target.pose, grid);
         let rigid_shift_mm = match &self.previous_pose {
             Some(previous) => rigid_shift_mm(previous, &target.pose, &gap),
             None => vec![[0.0; 2]; grid.len()],
@@ -175,25 +175,6 @@ impl Simulator {
             timings,
         })
     }
-}
-
-/// Cells with nothing above (gap +∞) get a finite gap farther than any surface displacement
-/// can reach (the farthest finite gap plus the deepest penetration plus 1 mm), so solvers that
-/// warm-start from the previous frame's contact never meet an infinite gap.
-fn finite_gap(mut gap: GapField) -> GapField {
-    let farthest = gap
-        .gap_mm
-        .iter()
-        .copied()
-        .filter(|g| g.is_finite())
-        .fold(0.0, f64::max);
-    let far_mm = farthest + gap.max_penetration_mm() + 1.0;
-    for g in &mut gap.gap_mm {
-        if !g.is_finite() {
-            *g = far_mm;
-        }
-    }
-    gap
 }
 
 /// The fields over `view`, the central part of the mechanics grid `margin` cells in from each
