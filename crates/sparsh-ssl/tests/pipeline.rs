@@ -9,6 +9,15 @@ use sparsh_ssl::recipe::Recipe;
 use sparsh_ssl::train::{RunOptions, run, seeded};
 use sparsh_ssl::weights::{load_encoder, save_encoder};
 
+/// burn's random generator is process-wide and parameters draw from it when first used, so
+/// tests that build models run one at a time: a run's loss curve must not depend on what
+/// another test draws meanwhile.
+static SERIAL: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
+fn serial() -> std::sync::MutexGuard<'static, ()> {
+    SERIAL.lock().unwrap_or_else(|e| e.into_inner())
+}
+
 /// A frame of a blob at `(cx, cy)` with brightness `depth` on a flat background (40×30, landscape).
 fn frame(cx: f64, cy: f64, depth: f64) -> RgbImage {
     RgbImage::from_fn(40, 30, |x, y| {
@@ -71,6 +80,7 @@ fn losses(out: &Path) -> Vec<(usize, f64)> {
 
 #[test]
 fn resume_continues_the_same_loss_curve() {
+    let _serial = serial();
     let tmp = tempfile::tempdir().unwrap();
     let data = tmp.path().join("data");
     write_generated(&data, 5, 8);
@@ -127,6 +137,7 @@ fn resume_continues_the_same_loss_curve() {
 
 #[test]
 fn pickle_layout_loads_as_sequences() {
+    let _serial = serial();
     use serde_pickle::Value;
     let tmp = tempfile::tempdir().unwrap();
     let obj = tmp.path().join("obj");
@@ -161,6 +172,7 @@ fn pickle_layout_loads_as_sequences() {
 
 #[test]
 fn bad_inputs_are_one_line_errors() {
+    let _serial = serial();
     let tmp = tempfile::tempdir().unwrap();
     let one_line = |e: String, needle: &str| {
         assert!(
