@@ -2,11 +2,56 @@
 //! sensor grid) becomes the sensor's RGB image. Optics knows nothing of forces.
 #![warn(missing_docs)]
 
+pub mod ball;
+pub mod calibrated;
+pub mod metrics;
+pub mod pack;
 mod photometric;
+pub mod sim2real;
 
+use image::RgbImage;
 use sparsh_scene::Grid;
 
+pub use calibrated::{CalibratedRenderer, Calibration, ColourMap};
+pub use pack::{CalibrationPack, PackError};
 pub use photometric::PhotometricRenderer;
+
+/// One of the image-formation models, behind one `render` call.
+#[derive(Debug, Clone)]
+pub enum Renderer {
+    /// Physically based shading under the sensor's lights ([`PhotometricRenderer`]).
+    Photometric(PhotometricRenderer),
+    /// A map fitted on real images ([`CalibratedRenderer`]).
+    Calibrated(CalibratedRenderer),
+}
+
+impl Renderer {
+    /// The no-contact image.
+    pub fn background(&self) -> RgbImage {
+        match self {
+            Renderer::Photometric(r) => r.background(),
+            Renderer::Calibrated(r) => r.background(),
+        }
+    }
+
+    /// The image of a deformed surface.
+    pub fn render(&self, surface: &Surface) -> RgbImage {
+        match self {
+            Renderer::Photometric(r) => r.render(surface),
+            Renderer::Calibrated(r) => r.render(surface),
+        }
+    }
+}
+
+/// Rounds and clamps linear 0–255 RGB values into an 8-bit image.
+pub(crate) fn to_image(width_px: usize, height_px: usize, pixels: &[[f32; 3]]) -> RgbImage {
+    let raw: Vec<u8> = pixels
+        .iter()
+        .flat_map(|p| p.map(|v| v.round().clamp(0.0, 255.0) as u8))
+        .collect();
+    RgbImage::from_raw(width_px as u32, height_px as u32, raw)
+        .expect("pixel buffer matches the image size")
+}
 
 /// The deformed gel surface on the sensor grid (mm, camera frame of [`sparsh_scene::grid`]).
 #[derive(Debug, Clone, Copy)]

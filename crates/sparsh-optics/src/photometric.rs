@@ -117,12 +117,7 @@ fn shade(sensor: &SensorConfig, surface: &Surface) -> Vec<[f32; 3]> {
 }
 
 fn to_image(sensor: &SensorConfig, pixels: &[[f32; 3]]) -> RgbImage {
-    let raw: Vec<u8> = pixels
-        .iter()
-        .flat_map(|p| p.map(|v| v.round().clamp(0.0, 255.0) as u8))
-        .collect();
-    RgbImage::from_raw(sensor.width_px as u32, sensor.height_px as u32, raw)
-        .expect("pixel buffer matches the sensor size")
+    crate::to_image(sensor.width_px, sensor.height_px, pixels)
 }
 
 fn load_background(

@@ -1,0 +1,209 @@
+//! Taxim calibration packs (`dataPack.npz`, from the `taxim` 1.4.1 package on PyPI, MIT licence):
+//! real frames of a ball pressed into the gel, with the hand-marked contact circle of each frame.
+//!
+//! Arrays read: `f0` (H×W×3 uint8, BGR: the no-contact frame), `imgs` (N×H×W×3 uint8, BGR),
+//! `touch_center` (N×2, x = column, y = row, pixels; any integer or float dtype) and
+//! `touch_radius` (N, contact radius in pixels; any integer or float dtype). Other arrays are
+//! ignored. Images are converted to RGB on load.
+
+use std::path::{Path, PathBuf};
+
+use image::RgbImage;
+
+/// A pack that cannot be used: one line naming the file, the array and what is wrong.
+#[derive(Debug, thiserror::Error)]
+#[error("{}: {field}: {message}", path.display())]
+pub struct PackError {
+    /// The npz file.
+    pub path: PathBuf,
+    /// The array (or `file` for the archive itself).
+    pub field: String,
+    /// What is wrong.
+    pub message: String,
+}
+
+/// A calibration pack in memory (images in RGB).
+#[derive(Debug, Clone)]
+pub struct CalibrationPack {
+    /// The no-contact frame.
+    pub background: RgbImage,
+    /// The contact frames.
+    pub frames: Vec<RgbImage>,
+    /// Contact centre of each frame (pixels: x = column, y = row).
+    pub centers_px: Vec<[f64; 2]>,
+    /// Contact radius of each frame (pixels).
+    pub radii_px: Vec<f64>,
+}
+
+impl CalibrationPack {
+    /// Reads a Taxim pack; every array is checked for presence, dtype and shape, and every
+    /// contact circle for a centre inside the image and a positive radius.
+    pub fn read(path: &Path) -> Result<CalibrationPack, PackError> {
+        let err = |field: &str, message: String| PackError {
+            path: path.to_path_buf(),
+            field: field.into(),
+            message,
+        };
+        let mut npz = npyz::npz::NpzArchive::open(path)
+            .map_err(|e| err("file", format!("cannot open as npz: {e}")))?;
+        let (f0_shape, f0) = read_u8(&mut npz, "f0", &err)?;
+        let [h, w, c] = f0_shape[..] else {
+            return Err(err("f0", format!("expected H×W×3, shape is {f0_shape:?}")));
+        };
+        if c != 3 || h == 0 || w == 0 {
+            return Err(err("f0", format!("expected H×W×3, shape is {f0_shape:?}")));
+        }
+        let (imgs_shape, imgs) = read_u8(&mut npz, "imgs", &err)?;
+        if imgs_shape.len() != 4 || imgs_shape[1..] != f0_shape[..] {
+            return Err(err(
+                "imgs",
+                format!("expected N×{h}×{w}×3 like f0, shape is {imgs_shape:?}"),
+            ));
+        }
+        let n = imgs_shape[0];
+        let (c_shape, centers) = read_f64(&mut npz, "touch_center", &err)?;
+        if c_shape != [n, 2] {
+            return Err(err(
+                "touch_center",
+                format!("expected {n}×2 (one x, y per frame), shape is {c_shape:?}"),
+            ));
+        }
+        let (r_shape, radii) = read_f64(&mut npz, "touch_radius", &err)?;
+        if r_shape != [n] {
+            return Err(err(
+                "touch_radius",
+                format!("expected {n} values (one per frame), shape is {r_shape:?}"),
+            ));
+        }
+        let centers_px: Vec<[f64; 2]> = centers.chunks_exact(2).map(|p| [p[0], p[1]]).collect();
+        for (k, p) in centers_px.iter().enumerate() {
+            let inside = (0.0..w as f64).contains(&p[0]) && (0.0..h as f64).contains(&p[1]);
+            if !inside {
+                return Err(err(
+                    "touch_center",
+                    format!(
+                        "frame {k}: centre ({}, {}) is outside the {w}×{h} image",
+                        p[0], p[1]
+                    ),
+                ));
+            }
+        }
+        for (k, r) in radii.iter().enumerate() {
+            if !(r.is_finite() && *r > 0.0) {
+                return Err(err(
+                    "touch_radius",
+                    format!("frame {k}: radius must be > 0, got {r}"),
+                ));
+            }
+        }
+        let to_rgb = |bgr: &[u8]| {
+            let rgb: Vec<u8> = bgr
+                .chunks_exact(3)
+                .flat_map(|p| [p[2], p[1], p[0]])
+                .collect();
+            RgbImage::from_raw(w as u32, h as u32, rgb).expect("size checked above")
+        };
+        let frame_len = h * w * 3;
+        Ok(CalibrationPack {
+            background: to_rgb(&f0),
+            frames: imgs.chunks_exact(frame_len).map(to_rgb).collect(),
+            centers_px,
+            radii_px: radii,
+        })
+    }
+
+    /// Image width and height (pixels).
+    pub fn size_px(&self) -> (usize, usize) {
+        (
+            self.background.width() as usize,
+            self.background.height() as usize,
+        )
+    }
+}
+
+type ErrFn<'a> = dyn Fn(&str, String) -> PackError + 'a;
+
+fn open_array<'a, R: std::io::Read + std::io::Seek>(
+    npz: &'a mut npyz::npz::NpzArchive<R>,
+    name: &str,
+    err: &ErrFn,
+) -> Result<npyz::NpyFile<impl std::io::Read + 'a>, PackError> {
+    match npz.by_name(name) {
+        Ok(Some(a)) => Ok(a),
+        Ok(None) => Err(err(name, "array is missing".into())),
+        Err(e) => Err(err(name, format!("cannot read: {e}"))),
+    }
+}
+
+fn shape_of<R: std::io::Read>(a: &npyz::NpyFile<R>) -> Vec<usize> {
+    a.shape().iter().map(|&s| s as usize).collect()
+}
+
+fn read_u8<R: std::io::Read + std::io::Seek>(
+    npz: &mut npyz::npz::NpzArchive<R>,
+    name: &str,
+    err: &ErrFn,
+) -> Result<(Vec<usize>, Vec<u8>), PackError> {
+    let a = open_array(npz, name, err)?;
+    let shape = shape_of(&a);
+    if a.order() != npyz::Order::C {
+        return Err(err(name, "Fortran-ordered arrays are not supported".into()));
+    }
+    let dtype = a.dtype().descr();
+    let data = a
+        .into_vec::<u8>()
+        .map_err(|e| err(name, format!("expected uint8, dtype is {dtype}: {e}")))?;
+    Ok((shape, data))
+}
+
+/// Reads a numeric array of any integer or float dtype as f64.
+fn read_f64<R: std::io::Read + std::io::Seek>(
+    npz: &mut npyz::npz::NpzArchive<R>,
+    name: &str,
+    err: &ErrFn,
+) -> Result<(Vec<usize>, Vec<f64>), PackError> {
+    use npyz::TypeChar;
+    let a = open_array(npz, name, err)?;
+    let shape = shape_of(&a);
+    if a.order() != npyz::Order::C && shape.len() > 1 {
+        return Err(err(name, "Fortran-ordered arrays are not supported".into()));
+    }
+    let dtype = a.dtype();
+    let descr = dtype.descr();
+    let bad = |e: std::io::Error| err(name, format!("cannot read {descr}: {e}"));
+    let unsupported = || err(name, format!("expected a numeric dtype, got {descr}"));
+    let npyz::DType::Plain(ts) = &dtype else {
+        return Err(unsupported());
+    };
+    let data: Vec<f64> = match (ts.type_char(), ts.size_field()) {
+        (TypeChar::Float, 8) => a.into_vec::<f64>().map_err(bad)?,
+        (TypeChar::Float, 4) => conv(a.into_vec::<f32>().map_err(bad)?),
+        (TypeChar::Int, 8) => a
+            .into_vec::<i64>()
+            .map_err(bad)?
+            .iter()
+            .map(|&v| v as f64)
+            .collect(),
+        (TypeChar::Int, 4) => conv(a.into_vec::<i32>().map_err(bad)?),
+        (TypeChar::Int, 2) => conv(a.into_vec::<i16>().map_err(bad)?),
+        (TypeChar::Int, 1) => conv(a.into_vec::<i8>().map_err(bad)?),
+        (TypeChar::Uint, 8) => a
+            .into_vec::<u64>()
+            .map_err(bad)?
+            .iter()
+            .map(|&v| v as f64)
+            .collect(),
+        (TypeChar::Uint, 4) => conv(a.into_vec::<u32>().map_err(bad)?),
+        (TypeChar::Uint, 2) => conv(a.into_vec::<u16>().map_err(bad)?),
+        (TypeChar::Uint, 1) => conv(a.into_vec::<u8>().map_err(bad)?),
+        _ => return Err(unsupported()),
+    };
+    if data.iter().any(|v| !v.is_finite()) {
+        return Err(err(name, "contains a non-finite value".into()));
+    }
+    Ok((shape, data))
+}
+
+fn conv<T: Into<f64> + Copy>(v: Vec<T>) -> Vec<f64> {
+    v.iter().map(|&x| x.into()).collect()
+}
