@@ -583,3 +583,35 @@ fn export_writes_the_official_sparsh_layout() {
     ]);
     assert_user_error(&out, "labels.jsonl");
 }
+
+#[test]
+fn calibration_commands_reject_bad_input_on_one_line() {
+    let tmp = tempfile::tempdir().unwrap();
+    let missing = tmp.path().join("missing.npz");
+    let out = tmp.path().join("calib");
+    let run = |extra: &[&str]| {
+        let mut args = vec!["calibrate", "--pack", missing.to_str().unwrap()];
+        args.extend_from_slice(extra);
+        args.extend_from_slice(&["--out", out.to_str().unwrap()]);
+        sparsh(&args)
+    };
+    assert_user_error(&run(&["--pixmm", "0.03"]), "missing.npz");
+    assert_user_error(&run(&["--pixmm=-1"]), "--pixmm");
+    assert_user_error(
+        &run(&["--pixmm", "0.03", "--ball-radius-mm", "0"]),
+        "--ball-radius-mm",
+    );
+    let not_npz = tmp.path().join("pack.npz");
+    std::fs::write(&not_npz, b"not a zip").unwrap();
+    let res = sparsh(&[
+        "sim2real",
+        "--pack",
+        not_npz.to_str().unwrap(),
+        "--calib",
+        out.to_str().unwrap(),
+        "--pixmm",
+        "0.03",
+    ]);
+    assert_user_error(&res, "pack.npz");
+    assert!(!out.exists(), "nothing written on bad input");
+}

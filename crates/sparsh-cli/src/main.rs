@@ -1,6 +1,7 @@
 //! `sparsh`: the command line of the sparsh tactile simulator.
 
 mod dataset;
+mod optics;
 mod pretrain;
 mod validate;
 
@@ -81,6 +82,48 @@ enum Command {
         /// Output directory.
         #[arg(long)]
         out: PathBuf,
+    },
+    /// Fit the calibrated optics on real images of a ball pressed into a sensor (a Taxim pack).
+    Calibrate {
+        /// Calibration pack (npz: f0, imgs, touch_center, touch_radius).
+        #[arg(long)]
+        pack: PathBuf,
+        /// Ball radius (mm).
+        #[arg(long, default_value_t = 2.0)]
+        ball_radius_mm: f64,
+        /// Pixel pitch of the pack (mm per pixel).
+        #[arg(long)]
+        pixmm: f64,
+        /// Frames to fit on.
+        #[arg(long, value_enum, default_value = "even")]
+        frames: optics::FrameSet,
+        /// Calibration directory to write.
+        #[arg(long)]
+        out: PathBuf,
+    },
+    /// Render a pack's ball indentations with a calibration and score them against the real frames.
+    Sim2real {
+        /// Calibration pack (npz).
+        #[arg(long)]
+        pack: PathBuf,
+        /// Calibration directory written by `calibrate`.
+        #[arg(long)]
+        calib: PathBuf,
+        /// Ball radius (mm).
+        #[arg(long, default_value_t = 2.0)]
+        ball_radius_mm: f64,
+        /// Pixel pitch of the pack (mm per pixel).
+        #[arg(long)]
+        pixmm: f64,
+        /// Frames to score.
+        #[arg(long, value_enum, default_value = "odd")]
+        frames: optics::FrameSet,
+        /// Print JSON (summary and per-frame scores).
+        #[arg(long)]
+        json: bool,
+        /// Also write each rendered frame as DIR/NNN.png.
+        #[arg(long)]
+        save: Option<PathBuf>,
     },
     /// Check every file of a dataset against the checksums in its manifest.
     Verify {
@@ -167,6 +210,30 @@ fn run(cli: Cli) -> Result<()> {
             strides,
         } => dataset::bench(&scene, &solvers, &strides),
         Command::Verify { dir } => dataset::verify(&dir),
+        Command::Calibrate {
+            pack,
+            ball_radius_mm,
+            pixmm,
+            frames,
+            out,
+        } => optics::calibrate(&pack, ball_radius_mm, pixmm, frames, &out),
+        Command::Sim2real {
+            pack,
+            calib,
+            ball_radius_mm,
+            pixmm,
+            frames,
+            json,
+            save,
+        } => optics::sim2real(
+            &pack,
+            &calib,
+            ball_radius_mm,
+            pixmm,
+            frames,
+            json,
+            save.as_deref(),
+        ),
         Command::Export {
             dir,
             format: _,
