@@ -6,7 +6,7 @@ use std::path::Path;
 use anyhow::{Result, anyhow, bail};
 use sparsh_optics::CalibrationPack;
 use sparsh_optics::sim2real::{
-    BallSetup, FitOptions, FrameScore, calibrate_pack, render_and_score, summarize,
+    BallSetup, FitOptions, FrameScore, calibrate_pack, pack_renderer, render_and_score, summarize,
 };
 
 /// Which frames of a pack to use.
@@ -88,9 +88,10 @@ pub fn sim2real(
     if let Some(dir) = save {
         std::fs::create_dir_all(dir).map_err(|e| anyhow!("{}: {e}", dir.display()))?;
     }
+    let renderer = pack_renderer(&calibration, &pack, setup, None);
     let mut scores: Vec<FrameScore> = Vec::new();
     for k in frames.indices(pack.frames.len()) {
-        let (image, score) = render_and_score(&calibration, &pack, k, setup)
+        let (image, score) = render_and_score(&renderer, &pack, k, setup)
             .map_err(|e| anyhow!("{}: frame {k}: {e}", pack_path.display()))?;
         if let Some(dir) = save {
             let png = sparsh_data::encode_png(&image).map_err(anyhow::Error::msg)?;

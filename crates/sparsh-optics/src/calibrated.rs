@@ -14,9 +14,11 @@ use std::path::Path;
 use image::RgbImage;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
-use sparsh_scene::Grid;
+use sparsh_scene::{Grid, Light, SensorConfig};
 
 use crate::Surface;
+use crate::photometric::{light_shares, shadow_settings};
+use crate::shadow::{ShadowSettings, visibilities};
 
 /// Position bases of the map: 1, x, y.
 const BASES: usize = 3;
@@ -382,13 +384,25 @@ pub(crate) fn write_atomic(
     std::fs::rename(&tmp, path).map_err(|e| format!("{}: {e}", path.display()))
 }
 
-/// Renders with a [`ColourMap`] over a background: I = clamp(round(bg + ΔI)).
+/// Renders with a [`ColourMap`] over a background: I = clamp(round(bg + ΔI)), and with shadows
+/// I_ch = (bg_ch + ΔI_ch)·Σ_l w_{l,ch}·v_l, where v_l is the visible fraction of light l
+/// ([`crate::shadow`]) and w_{l,ch} its share of the pixel's flat-gel radiance in channel ch
+/// ([`crate::photometric::light_shares`]): a shadow removes what its light contributes.
 #[derive(Debug, Clone)]
 pub struct CalibratedRenderer {
     map: ColourMap,
     background: Vec<[f32; 3]>,
     width_px: usize,
     height_px: usize,
+    shadows: Option<CalibratedShadows>,
+}
+
+/// What the calibrated model needs to cast shadows: the sensor's lights and their shares.
+#[derive(Debug, Clone)]
+struct CalibratedShadows {
+    lights: Vec<Light>,
+    shares: Vec<[f32; 3]>,
+    settings: ShadowSettings,
 }
 
 impl CalibratedRenderer {
@@ -411,7 +425,24 @@ impl CalibratedRenderer {
             background: bg.pixels().map(|p| p.0.map(f32::from)).collect(),
             width_px,
             height_px,
+            shadows: None,
         }
+    }
+
+    /// Casts shadows of `sensor`'s lights (its grid must match the image size), marching
+    /// `steps` samples per ray.
+    pub fn with_shadows(mut self, sensor: &SensorConfig, steps: u32) -> CalibratedRenderer {
+        assert_eq!(
+            (sensor.width_px, sensor.height_px),
+            (self.width_px, self.height_px),
+            "sensor and image differ in size"
+        );
+        self.shadows = Some(CalibratedShadows {
+            lights: sensor.lights.clone(),
+            shares: light_shares(sensor),
+            settings: shadow_settings(sensor, steps),
+        });
+        self
     }
 
     /// The no-contact image.
@@ -426,12 +457,30 @@ impl CalibratedRenderer {
             (self.width_px, self.height_px),
             "surface grid and image differ in size"
         );
+        crate::to_image(self.width_px, self.height_px, &self.render_linear(surface))
+    }
+
+    /// The image of a deformed surface before rounding (RGB, 0–255 scale).
+    pub fn render_linear(&self, surface: &Surface) -> Vec<[f32; 3]> {
         let delta = self.map.delta(surface);
-        let pixels: Vec<[f32; 3]> = delta
-            .iter()
+        let mut pixels: Vec<[f32; 3]> = delta
+            .par_iter()
             .zip(&self.background)
             .map(|(d, b)| std::array::from_fn(|c| b[c] + d[c]))
             .collect();
-        crate::to_image(self.width_px, self.height_px, &pixels)
+        if let Some(sh) = &self.shadows {
+            let n = sh.lights.len();
+            let visible = visibilities(surface.uz_mm, surface.grid, &sh.lights, sh.settings);
+            pixels
+                .par_iter_mut()
+                .zip(visible.par_chunks(n))
+                .zip(sh.shares.par_chunks(n))
+                .for_each(|((px, v), w)| {
+                    for (ch, value) in px.iter_mut().enumerate() {
+                        *value *= w.iter().zip(v).map(|(w, v)| w[ch] * *v as f32).sum::<f32>();
+                    }
+                });
+        }
+        pixels
     }
 }

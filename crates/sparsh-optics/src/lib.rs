@@ -6,7 +6,8 @@ pub mod ball;
 pub mod calibrated;
 pub mod metrics;
 pub mod pack;
-mod photometric;
+pub mod photometric;
+pub mod shadow;
 pub mod sim2real;
 
 use image::RgbImage;

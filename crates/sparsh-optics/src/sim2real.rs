@@ -5,7 +5,7 @@
 use image::RgbImage;
 use rayon::prelude::*;
 use serde::Serialize;
-use sparsh_scene::Grid;
+use sparsh_scene::{Grid, SensorConfig};
 
 use crate::calibrated::{CalibratedRenderer, Calibration, MapFitter};
 use crate::metrics::{Scores, crop, scores};
@@ -167,15 +167,36 @@ pub struct FrameScore {
     pub crop: Scores,
 }
 
-/// Renders frame `k` of the pack with a calibration and scores it against the real frame.
-pub fn render_and_score(
+/// The renderer of a pack's frames: the calibration at the pack's size, with shadows of
+/// `shadows`' lights when given (the sensor's size and pitch are set to the pack's).
+pub fn pack_renderer(
     calibration: &Calibration,
+    pack: &CalibrationPack,
+    setup: BallSetup,
+    shadows: Option<(&SensorConfig, u32)>,
+) -> CalibratedRenderer {
+    let (w, h) = pack.size_px();
+    let renderer = CalibratedRenderer::new(calibration, w, h);
+    match shadows {
+        Some((sensor, steps)) => {
+            let mut sensor = sensor.clone();
+            sensor.width_px = w;
+            sensor.height_px = h;
+            sensor.mm_per_px = setup.mm_per_px;
+            renderer.with_shadows(&sensor, steps)
+        }
+        None => renderer,
+    }
+}
+
+/// Renders frame `k` of the pack (see [`pack_renderer`]) and scores it against the real frame.
+pub fn render_and_score(
+    renderer: &CalibratedRenderer,
     pack: &CalibrationPack,
     k: usize,
     setup: BallSetup,
 ) -> Result<(RgbImage, FrameScore), String> {
     let (grid, uz) = frame_surface_uz(pack, k, setup)?;
-    let renderer = CalibratedRenderer::new(calibration, grid.nx, grid.ny);
     let zeros = vec![0.0; grid.len()];
     let sim = renderer.render(&Surface {
         grid,

@@ -209,7 +209,13 @@ fn calibration_recovers_a_known_map_on_held_out_frames() {
     assert!(bg_err <= 1, "background off by {bg_err}");
     let mut scores = Vec::new();
     for k in (1..n).step_by(2) {
-        let (sim, score) = render_and_score(&cal, &pack, k, SETUP).unwrap();
+        let (sim, score) = render_and_score(
+            &sparsh_optics::sim2real::pack_renderer(&cal, &pack, SETUP, None),
+            &pack,
+            k,
+            SETUP,
+        )
+        .unwrap();
         let worst = sim
             .as_raw()
             .iter()

@@ -23,7 +23,7 @@ pub use family::{DatasetSpec, MotionKind, Range, SequenceScene, Split, sequence_
 pub use gap::GapField;
 pub use grid::Grid;
 pub use indenter::{Anchor, Indenter, IndenterSpec, LengthUnit, MeshIndenter, ShapeKind, TriMesh};
-pub use sensor::{Light, PRESETS, SensorConfig};
+pub use sensor::{Light, MarkerGrid, PRESETS, SensorConfig};
 pub use trajectory::{FrameTarget, Keyframe, Pose, sample};
 
 /// The gel's elastic and frictional properties (`[gel]`).

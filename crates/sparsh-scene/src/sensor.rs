@@ -27,7 +27,7 @@ fn one() -> f64 {
 #[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct SensorConfig {
-    /// Preset name (`digit`, `gelsight2017`, `gelsight_mini`).
+    /// Preset name (one of [`PRESETS`]).
     pub name: String,
     /// Image width (pixels).
     pub width_px: usize,
@@ -42,11 +42,78 @@ pub struct SensorConfig {
     /// Background image (no contact); `None` renders the flat gel under the lights.
     #[serde(default)]
     pub background: Option<PathBuf>,
+    /// The camera's vertical field of view (degrees): sets the vignetting (cos⁴ law) and the
+    /// view direction of the specular term; `None` is an orthographic camera without vignetting.
+    #[serde(default)]
+    pub camera_vfov_deg: Option<f64>,
+    /// Radius of each LED's emitting disc (mm): the width of the shadows' penumbra.
+    #[serde(default = "default_led_radius_mm")]
+    pub led_radius_mm: f64,
+    /// Specular weight of the gel's coating (Blinn–Phong lobe against the Lambertian term; 0 is
+    /// matte).
+    #[serde(default)]
+    pub specular: f64,
+    /// Blinn–Phong exponent of the specular lobe.
+    #[serde(default = "default_shininess")]
+    pub shininess: f64,
+    /// Dots printed on the gel; `None` for a markerless gel.
+    #[serde(default)]
+    pub markers: Option<MarkerGrid>,
+}
+
+fn default_led_radius_mm() -> f64 {
+    1.0
+}
+
+fn default_shininess() -> f64 {
+    20.0
+}
+
+/// A rectangular grid of dark dots printed on the gel, centred on the camera's view.
+#[derive(Debug, Clone, Copy, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MarkerGrid {
+    /// Dots along x (image columns).
+    pub cols: usize,
+    /// Dots along y (image rows).
+    pub rows: usize,
+    /// Centre-to-centre spacing (mm).
+    pub pitch_mm: f64,
+    /// Dot radius (mm).
+    pub radius_mm: f64,
+    /// Fraction of the light a dot absorbs (0 transparent, 1 black).
+    #[serde(default = "default_marker_darkness")]
+    pub darkness: f64,
+}
+
+fn default_marker_darkness() -> f64 {
+    0.85
+}
+
+impl MarkerGrid {
+    /// Printed centre (mm, camera frame, undeformed gel) of dot (`col`, `row`).
+    pub fn centre_mm(&self, col: usize, row: usize) -> [f64; 2] {
+        [
+            (col as f64 - (self.cols as f64 - 1.0) / 2.0) * self.pitch_mm,
+            (row as f64 - (self.rows as f64 - 1.0) / 2.0) * self.pitch_mm,
+        ]
+    }
+
+    /// Printed centres of every dot, row by row.
+    pub fn centres_mm(&self) -> Vec<[f64; 2]> {
+        (0..self.rows)
+            .flat_map(|r| (0..self.cols).map(move |c| self.centre_mm(c, r)))
+            .collect()
+    }
 }
 
 /// The sensor presets shipped with the project.
-pub const PRESETS: [(&str, &str); 3] = [
+pub const PRESETS: [(&str, &str); 5] = [
     ("digit", include_str!("../../../assets/sensors/digit.toml")),
+    (
+        "digit_vga",
+        include_str!("../../../assets/sensors/digit_vga.toml"),
+    ),
     (
         "gelsight2017",
         include_str!("../../../assets/sensors/gelsight2017.toml"),
@@ -54,6 +121,10 @@ pub const PRESETS: [(&str, &str); 3] = [
     (
         "gelsight_mini",
         include_str!("../../../assets/sensors/gelsight_mini.toml"),
+    ),
+    (
+        "gelsight_mini_vga",
+        include_str!("../../../assets/sensors/gelsight_mini_vga.toml"),
     ),
 ];
 
@@ -115,6 +186,55 @@ impl SensorConfig {
                 return bad(
                     &format!("sensor.lights[{k}].intensity"),
                     format!("must be ≥ 0, got {}", light.intensity),
+                );
+            }
+        }
+        if let Some(fov) = self.camera_vfov_deg
+            && !(fov.is_finite() && fov > 0.0 && fov < 180.0)
+        {
+            return bad(
+                "sensor.camera_vfov_deg",
+                format!("must be in (0, 180), got {fov}"),
+            );
+        }
+        if !(self.led_radius_mm.is_finite() && self.led_radius_mm >= 0.0) {
+            return bad(
+                "sensor.led_radius_mm",
+                format!("must be ≥ 0, got {}", self.led_radius_mm),
+            );
+        }
+        if !(self.specular.is_finite() && self.specular >= 0.0) {
+            return bad(
+                "sensor.specular",
+                format!("must be ≥ 0, got {}", self.specular),
+            );
+        }
+        if !(self.shininess.is_finite() && self.shininess >= 1.0) {
+            return bad(
+                "sensor.shininess",
+                format!("must be ≥ 1, got {}", self.shininess),
+            );
+        }
+        if let Some(m) = &self.markers {
+            if m.cols == 0 || m.rows == 0 {
+                return bad(
+                    "sensor.markers",
+                    format!("needs at least one dot, got {} × {}", m.cols, m.rows),
+                );
+            }
+            if !(m.pitch_mm.is_finite() && m.radius_mm > 0.0 && 2.0 * m.radius_mm < m.pitch_mm) {
+                return bad(
+                    "sensor.markers.radius_mm",
+                    format!(
+                        "must be > 0 and under half the pitch {} mm, got {}",
+                        m.pitch_mm, m.radius_mm
+                    ),
+                );
+            }
+            if !(0.0..=1.0).contains(&m.darkness) {
+                return bad(
+                    "sensor.markers.darkness",
+                    format!("must be in [0, 1], got {}", m.darkness),
                 );
             }
         }

@@ -288,3 +288,40 @@ fn mechanics_grid_settings_are_checked() {
     let grid = scene.mechanics_grid();
     assert_eq!((grid.nx, grid.ny), (16 + 6, 12 + 6));
 }
+
+/// Every shipped preset is a scene's valid sensor, and each resolution mode of a sensor views the
+/// same patch of gel (pitch × pixels equal across modes).
+#[test]
+fn every_preset_resolves_and_modes_share_the_view() {
+    for (name, _) in sparsh_scene::PRESETS {
+        let scene = parse(&BASE.replace("\"digit\"", &format!("\"{name}\"")))
+            .unwrap_or_else(|e| panic!("{name}: {e}"));
+        assert_eq!(scene.sensor.name, name);
+        let preset = sparsh_scene::SensorConfig::preset(name).unwrap();
+        if let Some(m) = preset.markers {
+            let view_x = preset.width_px as f64 * preset.mm_per_px;
+            let view_y = preset.height_px as f64 * preset.mm_per_px;
+            assert!(
+                (m.cols as f64 - 1.0) * m.pitch_mm < view_x,
+                "{name}: markers fit the view"
+            );
+            assert!(
+                (m.rows as f64 - 1.0) * m.pitch_mm < view_y,
+                "{name}: markers fit the view"
+            );
+        }
+    }
+    for (qvga, vga) in [
+        ("digit", "digit_vga"),
+        ("gelsight_mini", "gelsight_mini_vga"),
+    ] {
+        let a = sparsh_scene::SensorConfig::preset(qvga).unwrap();
+        let b = sparsh_scene::SensorConfig::preset(vga).unwrap();
+        assert_eq!((a.width_px * 2, a.height_px * 2), (b.width_px, b.height_px));
+        assert!(
+            (a.mm_per_px - 2.0 * b.mm_per_px).abs() < 1e-12,
+            "{qvga}/{vga}"
+        );
+        assert_eq!(a.lights, b.lights);
+    }
+}

@@ -74,7 +74,7 @@ impl Simulator {
     /// Prepares the solver and renderer of `scene`.
     pub fn new(scene: Scene) -> Result<Simulator, SimError> {
         let solver = solver_for(scene.solver, &scene.gel, scene.mechanics_grid());
-        let renderer = PhotometricRenderer::new(&scene.sensor)?;
+        let renderer = PhotometricRenderer::new(&scene.sensor, None)?;
         Ok(Simulator {
             targets: scene.frames(),
             scene,
