@@ -615,3 +615,72 @@ fn calibration_commands_reject_bad_input_on_one_line() {
     assert_user_error(&res, "pack.npz");
     assert!(!out.exists(), "nothing written on bad input");
 }
+
+fn render_on(scene: &Path, png: &Path, device: &str, backend: Option<&str>) -> Output {
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_sparsh"));
+    cmd.args([
+        "render",
+        scene.to_str().unwrap(),
+        "--frame",
+        "7",
+        "--out",
+        png.to_str().unwrap(),
+        "--device",
+        device,
+    ]);
+    if let Some(b) = backend {
+        cmd.env("WGPU_BACKEND", b);
+    }
+    cmd.output().expect("sparsh runs")
+}
+
+#[test]
+fn device_without_an_adapter_fails_or_falls_back_on_one_line() {
+    let tmp = tempfile::tempdir().unwrap();
+    let scene = write_scene(tmp.path(), SMALL_SCENE);
+    let (cpu, auto) = (tmp.path().join("cpu.png"), tmp.path().join("auto.png"));
+    // Only DirectX 12, which Linux does not have: wgpu finds no adapter.
+    let out = render_on(&scene, &tmp.path().join("gpu.png"), "gpu", Some("dx12"));
+    assert_user_error(&out, "no GPU adapter");
+    assert!(!tmp.path().join("gpu.png").exists());
+    let out = render_on(&scene, &auto, "auto", Some("dx12"));
+    assert!(out.status.success(), "{}", stderr(&out));
+    let err = stderr(&out);
+    assert_eq!(err.trim_end().lines().count(), 1, "one line: {err}");
+    assert!(
+        err.contains("no GPU adapter") && err.contains("CPU"),
+        "{err}"
+    );
+    assert!(
+        render_on(&scene, &cpu, "cpu", Some("dx12"))
+            .status
+            .success()
+    );
+    assert!(std::fs::read(&cpu).unwrap() == std::fs::read(&auto).unwrap());
+}
+
+#[test]
+fn render_on_the_gpu_matches_the_cpu_within_a_level() {
+    let tmp = tempfile::tempdir().unwrap();
+    let scene = write_scene(tmp.path(), SMALL_SCENE);
+    let (cpu, gpu) = (tmp.path().join("cpu.png"), tmp.path().join("gpu.png"));
+    let out = render_on(&scene, &gpu, "gpu", None);
+    if !out.status.success() && std::env::var("SPARSH_REQUIRE_GPU").as_deref() != Ok("1") {
+        eprintln!("skipped: {}", stderr(&out));
+        return;
+    }
+    assert!(out.status.success(), "{}", stderr(&out));
+    assert!(render_on(&scene, &cpu, "cpu", None).status.success());
+    let (a, b) = (
+        image::open(&cpu).unwrap().to_rgb8(),
+        image::open(&gpu).unwrap().to_rgb8(),
+    );
+    let worst = a
+        .as_raw()
+        .iter()
+        .zip(b.as_raw())
+        .map(|(x, y)| x.abs_diff(*y))
+        .max()
+        .unwrap();
+    assert!(worst <= 1, "CPU and GPU frames differ by {worst}");
+}

@@ -13,6 +13,7 @@ use sparsh_contact::Fields;
 use sparsh_data::{
     Dataset, Identity, Label, Manifest, OpenMode, PoseLabel, SequencePart, encode_png, write_atomic,
 };
+use sparsh_optics::GpuContext;
 use sparsh_scene::{DatasetSpec, FieldName, OutputSpec, Precision, SequenceScene, SolverKind};
 use sparsh_sim::{Frame, Simulator};
 
@@ -43,6 +44,38 @@ impl FromStr for Shard {
     }
 }
 
+/// `--device`: where images are formed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum DeviceArg {
+    /// The CPU.
+    Cpu,
+    /// A GPU adapter (wgpu); an error if there is none.
+    Gpu,
+    /// A GPU adapter if there is one, else the CPU.
+    Auto,
+}
+
+impl DeviceArg {
+    /// The GPU context asked for: none for `cpu`; for `auto` without an adapter, one line on
+    /// stderr and none.
+    pub fn context(self) -> Result<Option<GpuContext>> {
+        if self == DeviceArg::Cpu {
+            return Ok(None);
+        }
+        match (self, GpuContext::shared()) {
+            (_, Ok(ctx)) => {
+                eprintln!("images formed on the GPU: {}", ctx.adapter());
+                Ok(Some(ctx))
+            }
+            (DeviceArg::Gpu, Err(e)) => Err(anyhow::anyhow!("--device gpu: {e}")),
+            (_, Err(e)) => {
+                eprintln!("--device auto: {e}; images formed on the CPU");
+                Ok(None)
+            }
+        }
+    }
+}
+
 /// Renders frame `index` of sequence `sequence` to `out` (PNG), and optionally its fields.
 pub fn render(
     scene_path: &Path,
@@ -50,6 +83,7 @@ pub fn render(
     index: usize,
     out: &Path,
     fields: Option<&Path>,
+    device: DeviceArg,
 ) -> Result<()> {
     let spec = DatasetSpec::load(scene_path)?;
     let sequences = spec.sequence_count();
@@ -59,7 +93,8 @@ pub fn render(
             scene_path.display()
         );
     }
-    let mut sim = Simulator::new(spec.sequence(sequence)?.scene)?;
+    let gpu = device.context()?;
+    let mut sim = Simulator::on_device(spec.sequence(sequence)?.scene, gpu.as_ref())?;
     let count = sim.frame_count();
     if index >= count {
         bail!(
@@ -97,6 +132,8 @@ pub struct GenerateOptions {
     pub solver: Option<SolverKind>,
     /// Use this mechanics stride instead of the scene's (benchmarks).
     pub mechanics_stride: Option<usize>,
+    /// Where images are formed.
+    pub device: DeviceArg,
 }
 
 /// What a `generate` run did.
@@ -138,6 +175,7 @@ pub fn generate(scene_path: &Path, out: &Path, options: GenerateOptions) -> Resu
         bail!("--force and --resume contradict each other: pick one");
     }
     let spec = DatasetSpec::load(scene_path)?;
+    let gpu = options.device.context()?;
     let identity = Identity {
         format: "sparsh-dataset/1".into(),
         sparsh_version: env!("CARGO_PKG_VERSION").into(),
@@ -188,7 +226,7 @@ pub fn generate(scene_path: &Path, out: &Path, options: GenerateOptions) -> Resu
     let start = Instant::now();
     sequences
         .into_par_iter()
-        .try_for_each(|seq| write_sequence(&dataset, seq, &progress, &totals))?;
+        .try_for_each(|seq| write_sequence(&dataset, seq, gpu.as_ref(), &progress, &totals))?;
     progress.finish_and_clear();
     let wall_s = start.elapsed().as_secs_f64();
     let stages = *totals.lock().expect("no poisoned lock");
@@ -218,7 +256,12 @@ pub fn generate(scene_path: &Path, out: &Path, options: GenerateOptions) -> Resu
 /// `sparsh bench SCENE`: generates the scene once per solver rung and mechanics stride into a
 /// scratch directory and prints frames/s, the ratio to the first run, and each stage's share of
 /// the time.
-pub fn bench(scene_path: &Path, solvers: &[SolverKind], strides: &[usize]) -> Result<()> {
+pub fn bench(
+    scene_path: &Path,
+    solvers: &[SolverKind],
+    strides: &[usize],
+    device: DeviceArg,
+) -> Result<()> {
     println!(
         "| solver | stride | frames | frames/s | × first | gap % | contact % | optics % | writing % |"
     );
@@ -238,6 +281,7 @@ pub fn bench(scene_path: &Path, solvers: &[SolverKind], strides: &[usize]) -> Re
                 shard: None,
                 solver: Some(solver),
                 mechanics_stride: Some(stride),
+                device,
             },
         )?;
         let fps = report.frames as f64 / report.wall_s;
@@ -257,11 +301,12 @@ pub fn bench(scene_path: &Path, solvers: &[SolverKind], strides: &[usize]) -> Re
 fn write_sequence(
     dataset: &Dataset,
     seq: SequenceScene,
+    gpu: Option<&GpuContext>,
     progress: &ProgressBar,
     totals: &Mutex<StageTotals>,
 ) -> Result<()> {
     let output = seq.scene.output.clone();
-    let mut sim = Simulator::new(seq.scene)?;
+    let mut sim = Simulator::on_device(seq.scene, gpu)?;
     let mut part = SequencePart {
         sequence: seq.sequence,
         files: Default::default(),

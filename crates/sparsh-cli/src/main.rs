@@ -41,6 +41,10 @@ enum Command {
         /// Also write the frame's ground-truth fields to this EXR file.
         #[arg(long)]
         fields: Option<PathBuf>,
+        /// Where images are formed: `cpu`, `gpu` (wgpu; an error without an adapter) or `auto`
+        /// (the GPU if there is one, else the CPU).
+        #[arg(long, value_enum, default_value = "cpu")]
+        device: dataset::DeviceArg,
     },
     /// Simulate every sequence of a scene or dataset file into a dataset directory.
     Generate {
@@ -59,6 +63,10 @@ enum Command {
         /// shards; the last shard to finish writes the manifest.
         #[arg(long, value_name = "K/N")]
         shard: Option<dataset::Shard>,
+        /// Where images are formed: `cpu`, `gpu` (wgpu; an error without an adapter) or `auto`
+        /// (the GPU if there is one, else the CPU).
+        #[arg(long, value_enum, default_value = "cpu")]
+        device: dataset::DeviceArg,
     },
     /// Measure the whole pipeline's throughput (frames/s and each stage's share) per solver rung.
     Bench {
@@ -70,6 +78,10 @@ enum Command {
         /// Mechanics strides to compare (pixels per contact cell).
         #[arg(long = "stride", default_values = ["1", "2", "4"])]
         strides: Vec<usize>,
+        /// Where images are formed: `cpu`, `gpu` (wgpu; an error without an adapter) or `auto`
+        /// (the GPU if there is one, else the CPU).
+        #[arg(long, value_enum, default_value = "cpu")]
+        device: dataset::DeviceArg,
     },
     /// Write a dataset in another project's layout.
     Export {
@@ -185,13 +197,15 @@ fn run(cli: Cli) -> Result<()> {
             frame,
             out,
             fields,
-        } => dataset::render(&scene, sequence, frame, &out, fields.as_deref()),
+            device,
+        } => dataset::render(&scene, sequence, frame, &out, fields.as_deref(), device),
         Command::Generate {
             scene,
             out,
             force,
             resume,
             shard,
+            device,
         } => dataset::generate(
             &scene,
             &out,
@@ -201,6 +215,7 @@ fn run(cli: Cli) -> Result<()> {
                 shard,
                 solver: None,
                 mechanics_stride: None,
+                device,
             },
         )
         .map(drop),
@@ -208,7 +223,8 @@ fn run(cli: Cli) -> Result<()> {
             scene,
             solvers,
             strides,
-        } => dataset::bench(&scene, &solvers, &strides),
+            device,
+        } => dataset::bench(&scene, &solvers, &strides, device),
         Command::Verify { dir } => dataset::verify(&dir),
         Command::Calibrate {
             pack,

@@ -390,19 +390,19 @@ pub(crate) fn write_atomic(
 /// ([`crate::photometric::light_shares`]): a shadow removes what its light contributes.
 #[derive(Debug, Clone)]
 pub struct CalibratedRenderer {
-    map: ColourMap,
-    background: Vec<[f32; 3]>,
-    width_px: usize,
-    height_px: usize,
-    shadows: Option<CalibratedShadows>,
+    pub(crate) map: ColourMap,
+    pub(crate) background: Vec<[f32; 3]>,
+    pub(crate) width_px: usize,
+    pub(crate) height_px: usize,
+    pub(crate) shadows: Option<CalibratedShadows>,
 }
 
 /// What the calibrated model needs to cast shadows: the sensor's lights and their shares.
 #[derive(Debug, Clone)]
-struct CalibratedShadows {
-    lights: Vec<Light>,
-    shares: Vec<[f32; 3]>,
-    settings: ShadowSettings,
+pub(crate) struct CalibratedShadows {
+    pub(crate) lights: Vec<Light>,
+    pub(crate) shares: Vec<[f32; 3]>,
+    pub(crate) settings: ShadowSettings,
 }
 
 impl CalibratedRenderer {

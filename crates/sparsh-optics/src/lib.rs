@@ -4,6 +4,7 @@
 
 pub mod ball;
 pub mod calibrated;
+pub mod gpu;
 pub mod metrics;
 pub mod pack;
 pub mod photometric;
@@ -14,6 +15,7 @@ use image::RgbImage;
 use sparsh_scene::Grid;
 
 pub use calibrated::{CalibratedRenderer, Calibration, ColourMap};
+pub use gpu::{Device, GpuContext, GpuError, GpuRenderer};
 pub use pack::{CalibrationPack, PackError};
 pub use photometric::PhotometricRenderer;
 
@@ -24,6 +26,8 @@ pub enum Renderer {
     Photometric(PhotometricRenderer),
     /// A map fitted on real images ([`CalibratedRenderer`]).
     Calibrated(CalibratedRenderer),
+    /// Either model as wgpu compute shaders ([`GpuRenderer`]).
+    Gpu(GpuRenderer),
 }
 
 impl Renderer {
@@ -32,15 +36,22 @@ impl Renderer {
         match self {
             Renderer::Photometric(r) => r.background(),
             Renderer::Calibrated(r) => r.background(),
+            Renderer::Gpu(r) => r.background(),
         }
     }
 
     /// The image of a deformed surface.
-    pub fn render(&self, surface: &Surface) -> RgbImage {
+    pub fn render(&self, surface: &Surface) -> Result<RgbImage, GpuError> {
         match self {
-            Renderer::Photometric(r) => r.render(surface),
-            Renderer::Calibrated(r) => r.render(surface),
+            Renderer::Photometric(r) => Ok(r.render(surface)),
+            Renderer::Calibrated(r) => Ok(r.render(surface)),
+            Renderer::Gpu(r) => r.render(surface),
         }
+    }
+
+    /// The same model on the GPU of `context` (buffers and pipeline made here, once).
+    pub fn on_gpu(&self, context: &GpuContext) -> Result<Renderer, GpuError> {
+        GpuRenderer::new(self, context).map(Renderer::Gpu)
     }
 }
 
@@ -78,4 +89,7 @@ pub enum OpticsError {
         /// What is wrong.
         message: String,
     },
+    /// The GPU path failed.
+    #[error(transparent)]
+    Gpu(#[from] GpuError),
 }

@@ -22,15 +22,15 @@ const D0_MM2: f64 = 100.0;
 /// Without a background image, bg = V·(a + g·S(n₀)) with a dim ambient level a.
 #[derive(Debug, Clone)]
 pub struct PhotometricRenderer {
-    sensor: SensorConfig,
+    pub(crate) sensor: SensorConfig,
     /// Background, RGB in 0–255, row-major.
-    background: Vec<[f32; 3]>,
+    pub(crate) background: Vec<[f32; 3]>,
     /// Shading of the undeformed gel.
-    flat: Vec<[f32; 3]>,
+    pub(crate) flat: Vec<[f32; 3]>,
     /// Vignetting per pixel.
-    vignette: Vec<f32>,
-    gain: f32,
-    shadows: Option<ShadowSettings>,
+    pub(crate) vignette: Vec<f32>,
+    pub(crate) gain: f32,
+    pub(crate) shadows: Option<ShadowSettings>,
 }
 
 impl PhotometricRenderer {
@@ -116,7 +116,7 @@ pub fn vignetting(sensor: &SensorConfig, i: usize, j: usize) -> f64 {
 
 /// The camera's position (mm): on the optical axis at the distance where the gel's view fills
 /// the field of view, or `None` (orthographic) without one.
-fn camera_mm(sensor: &SensorConfig) -> Option<[f64; 3]> {
+pub(crate) fn camera_mm(sensor: &SensorConfig) -> Option<[f64; 3]> {
     let fov = sensor.camera_vfov_deg?;
     let half_view_mm = sensor.height_px as f64 * sensor.mm_per_px / 2.0;
     Some([0.0, 0.0, -half_view_mm / (fov.to_radians() / 2.0).tan()])

@@ -10,7 +10,7 @@ use sparsh_contact::{
     ContactError, ContactInput, ContactSolver, Fields, NormalControl, SlipState, rigid_shift_mm,
     solver_for,
 };
-use sparsh_optics::{OpticsError, PhotometricRenderer, Surface};
+use sparsh_optics::{GpuContext, OpticsError, PhotometricRenderer, Renderer, Surface};
 use sparsh_scene::{FrameTarget, GapField, Grid, Pose, Scene};
 
 /// Why a frame could not be simulated.
@@ -65,16 +65,24 @@ pub struct Simulator {
     scene: Scene,
     targets: Vec<FrameTarget>,
     solver: Box<dyn ContactSolver>,
-    renderer: PhotometricRenderer,
+    renderer: Renderer,
     previous_pose: Option<Pose>,
     next: usize,
 }
 
 impl Simulator {
-    /// Prepares the solver and renderer of `scene`.
+    /// Prepares the solver and renderer of `scene`, images formed on the CPU.
     pub fn new(scene: Scene) -> Result<Simulator, SimError> {
+        Simulator::on_device(scene, None)
+    }
+
+    /// Prepares the solver and renderer of `scene`, images formed on `gpu` if given.
+    pub fn on_device(scene: Scene, gpu: Option<&GpuContext>) -> Result<Simulator, SimError> {
         let solver = solver_for(scene.solver, &scene.gel, scene.mechanics_grid());
-        let renderer = PhotometricRenderer::new(&scene.sensor, None)?;
+        let mut renderer = Renderer::Photometric(PhotometricRenderer::new(&scene.sensor, None)?);
+        if let Some(context) = gpu {
+            renderer = renderer.on_gpu(context).map_err(OpticsError::from)?;
+        }
         Ok(Simulator {
             targets: scene.frames(),
             scene,
@@ -143,7 +151,7 @@ impl Simulator {
         pose.position_mm.z -= fields.approach_offset_mm;
         self.previous_pose = Some(pose);
         let image_grid = self.scene.grid();
-        let image = if image_grid == grid {
+        let rendered = if image_grid == grid {
             self.renderer.render(&Surface {
                 grid,
                 ux_mm: &fields.ux_mm,
@@ -160,6 +168,7 @@ impl Simulator {
                 uz_mm: &uz,
             })
         };
+        let image = rendered.map_err(|e| SimError::Optics(e.into()))?;
         let timings = StageTimes {
             gap_s: (gap_done - start).as_secs_f64(),
             contact_s: (contact_done - gap_done).as_secs_f64(),

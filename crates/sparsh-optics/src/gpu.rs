@@ -1,0 +1,395 @@
+//! The image-formation models as wgpu compute shaders (`shaders/*.wgsl` at the repository root):
+//! the same maths as the CPU path in f32, one invocation per pixel, so the image of a surface is
+//! the same on every run. Buffers and the pipeline are made once per renderer and reused for
+//! every frame; only the surface is uploaded and the 8-bit image read back.
+
+use std::sync::{Arc, Mutex, OnceLock};
+
+use image::RgbImage;
+use wgpu::util::DeviceExt;
+
+use sparsh_scene::Light;
+
+use crate::photometric::camera_mm;
+use crate::shadow::ShadowSettings;
+use crate::{CalibratedRenderer, PhotometricRenderer, Renderer, Surface};
+
+const COMMON_WGSL: &str = include_str!("../../../shaders/common.wgsl");
+const PHOTOMETRIC_WGSL: &str = include_str!("../../../shaders/photometric.wgsl");
+const CALIBRATED_WGSL: &str = include_str!("../../../shaders/calibrated.wgsl");
+/// Workgroup edge of the shaders (`@workgroup_size(8, 8)`).
+const WORKGROUP: u32 = 8;
+
+/// Where images are formed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Device {
+    /// On the CPU (rayon).
+    #[default]
+    Cpu,
+    /// On a GPU adapter through wgpu; an error if there is none.
+    Gpu,
+    /// On a GPU adapter if there is one, else on the CPU.
+    Auto,
+}
+
+/// GPU failures.
+#[derive(Debug, Clone, thiserror::Error)]
+pub enum GpuError {
+    /// wgpu found no adapter (no GPU and no software driver such as Mesa's lavapipe).
+    #[error("no GPU adapter found ({0}); install a Vulkan driver (e.g. apt mesa-vulkan-drivers)")]
+    NoAdapter(String),
+    /// The adapter refused a device, a shader or a buffer.
+    #[error("GPU: {0}")]
+    Device(String),
+}
+
+/// A wgpu device and queue, shared by every GPU renderer of the process.
+#[derive(Debug, Clone)]
+pub struct GpuContext {
+    device: wgpu::Device,
+    queue: wgpu::Queue,
+    adapter: String,
+}
+
+impl GpuContext {
+    /// The process's GPU context, made on first use (the adapter wgpu prefers; `WGPU_BACKEND`
+    /// and `WGPU_ADAPTER_NAME` choose another).
+    pub fn shared() -> Result<GpuContext, GpuError> {
+        static SHARED: OnceLock<Result<GpuContext, GpuError>> = OnceLock::new();
+        SHARED.get_or_init(GpuContext::new).clone()
+    }
+
+    fn new() -> Result<GpuContext, GpuError> {
+        let instance =
+            wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
+        let adapter = pollster::block_on(instance.request_adapter(&wgpu::RequestAdapterOptions {
+            power_preference: wgpu::PowerPreference::HighPerformance,
+            ..Default::default()
+        }))
+        .map_err(|e| GpuError::NoAdapter(e.to_string()))?;
+        let info = adapter.get_info();
+        let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
+            label: Some("sparsh-optics"),
+            required_limits: wgpu::Limits::downlevel_defaults(),
+            ..Default::default()
+        }))
+        .map_err(|e| GpuError::Device(format!("{}: {e}", info.name)))?;
+        Ok(GpuContext {
+            device,
+            queue,
+            adapter: format!("{} ({:?})", info.name, info.backend),
+        })
+    }
+
+    /// The adapter's name and backend, e.g. `llvmpipe (LLVM 15.0.6, 256 bits) (Vulkan)`.
+    pub fn adapter(&self) -> &str {
+        &self.adapter
+    }
+}
+
+/// The uniform block of `shaders/common.wgsl`.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Default, bytemuck::Pod, bytemuck::Zeroable)]
+struct Params {
+    width: u32,
+    height: u32,
+    lights: u32,
+    nodes: u32,
+    shadow_steps: u32,
+    perspective: u32,
+    unused: [u32; 2],
+    cell_mm: f32,
+    gain: f32,
+    specular: f32,
+    shininess: f32,
+    camera_z_mm: f32,
+    max_march_mm: f32,
+    led_radius_mm: f32,
+    max_height_mm: f32,
+}
+
+impl Params {
+    fn shadows(self, settings: Option<ShadowSettings>) -> Params {
+        match settings {
+            Some(s) => Params {
+                shadow_steps: s.steps,
+                max_march_mm: s.max_march_mm as f32,
+                led_radius_mm: s.led_radius_mm as f32,
+                ..self
+            },
+            None => self,
+        }
+    }
+}
+
+/// One of the models on the GPU, with its buffers and pipeline made once.
+#[derive(Debug, Clone)]
+pub struct GpuRenderer {
+    /// The CPU model (for its background image).
+    cpu: Box<Renderer>,
+    context: GpuContext,
+    /// The model's uniforms but for the frame's cell size and highest point.
+    uniforms: Params,
+    pipeline: wgpu::ComputePipeline,
+    bind_group: wgpu::BindGroup,
+    params: wgpu::Buffer,
+    surface: wgpu::Buffer,
+    output: wgpu::Buffer,
+    readback: wgpu::Buffer,
+    /// Surface fields uploaded per frame: u_z, or u_z, u_x, u_y.
+    fields: usize,
+    width_px: usize,
+    height_px: usize,
+    /// Frames share the buffers: one at a time.
+    busy: Arc<Mutex<()>>,
+}
+
+impl GpuRenderer {
+    /// Puts a CPU model on the GPU.
+    pub fn new(model: &Renderer, context: &GpuContext) -> Result<GpuRenderer, GpuError> {
+        match model {
+            Renderer::Photometric(r) => photometric(r, context),
+            Renderer::Calibrated(r) => calibrated(r, context),
+            Renderer::Gpu(r) => Ok(r.clone()),
+        }
+    }
+
+    /// The no-contact image.
+    pub fn background(&self) -> RgbImage {
+        self.cpu.background()
+    }
+
+    /// The image of a deformed surface (its grid must match the image size).
+    pub fn render(&self, surface: &Surface) -> Result<RgbImage, GpuError> {
+        assert_eq!(
+            (surface.grid.nx, surface.grid.ny),
+            (self.width_px, self.height_px),
+            "surface grid and image differ in size"
+        );
+        let fields = [surface.uz_mm, surface.ux_mm, surface.uy_mm];
+        let data: Vec<f32> = fields[..self.fields]
+            .iter()
+            .flat_map(|f| f.iter().map(|&v| v as f32))
+            .collect();
+        let max_height_mm = surface
+            .uz_mm
+            .iter()
+            .fold(f64::NEG_INFINITY, |m, u| m.max(-u));
+        let params = Params {
+            cell_mm: surface.grid.cell_mm as f32,
+            max_height_mm: max_height_mm as f32,
+            ..self.uniforms
+        };
+        let _busy = self.busy.lock().unwrap_or_else(|e| e.into_inner());
+        let ctx = &self.context;
+        ctx.queue
+            .write_buffer(&self.params, 0, bytemuck::bytes_of(&params));
+        ctx.queue
+            .write_buffer(&self.surface, 0, bytemuck::cast_slice(&data));
+        let mut encoder = ctx
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor::default());
+        {
+            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor::default());
+            pass.set_pipeline(&self.pipeline);
+            pass.set_bind_group(0, &self.bind_group, &[]);
+            pass.dispatch_workgroups(
+                (self.width_px as u32).div_ceil(WORKGROUP),
+                (self.height_px as u32).div_ceil(WORKGROUP),
+                1,
+            );
+        }
+        encoder.copy_buffer_to_buffer(&self.output, 0, &self.readback, 0, self.output.size());
+        ctx.queue.submit([encoder.finish()]);
+        let (tx, rx) = std::sync::mpsc::channel();
+        self.readback
+            .map_async(wgpu::MapMode::Read, .., move |r| drop(tx.send(r)));
+        ctx.device
+            .poll(wgpu::PollType::wait_indefinitely())
+            .map_err(|e| GpuError::Device(e.to_string()))?;
+        rx.recv()
+            .map_err(|e| GpuError::Device(e.to_string()))?
+            .map_err(|e| GpuError::Device(e.to_string()))?;
+        let raw: Vec<u8> = {
+            let view = self
+                .readback
+                .get_mapped_range(..)
+                .map_err(|e| GpuError::Device(e.to_string()))?;
+            bytemuck::cast_slice::<u8, u32>(&view)
+                .iter()
+                .flat_map(|p| {
+                    let [r, g, b, _] = p.to_le_bytes();
+                    [r, g, b]
+                })
+                .collect()
+        };
+        self.readback.unmap();
+        Ok(
+            RgbImage::from_raw(self.width_px as u32, self.height_px as u32, raw)
+                .expect("readback matches the image size"),
+        )
+    }
+}
+
+fn rgb(v: [f32; 3]) -> [f32; 4] {
+    [v[0], v[1], v[2], 0.0]
+}
+
+/// Each light as (position, intensity), (colour, 0).
+fn push_lights(model: &mut Vec<[f32; 4]>, lights: &[Light]) {
+    for light in lights {
+        let [x, y, z] = light.position_mm.map(|v| v as f32);
+        model.push([x, y, z, light.intensity as f32]);
+        model.push(rgb(light.color.map(|v| v as f32)));
+    }
+}
+
+fn photometric(r: &PhotometricRenderer, context: &GpuContext) -> Result<GpuRenderer, GpuError> {
+    let sensor = &r.sensor;
+    let mut model: Vec<[f32; 4]> = r.background.iter().copied().map(rgb).collect();
+    model.extend(
+        r.flat
+            .iter()
+            .zip(&r.vignette)
+            .map(|(f, v)| [f[0], f[1], f[2], *v]),
+    );
+    push_lights(&mut model, &sensor.lights);
+    let camera = camera_mm(sensor);
+    let uniforms = Params {
+        width: sensor.width_px as u32,
+        height: sensor.height_px as u32,
+        lights: sensor.lights.len() as u32,
+        perspective: u32::from(camera.is_some()),
+        gain: r.gain,
+        specular: sensor.specular as f32,
+        shininess: sensor.shininess as f32,
+        camera_z_mm: camera.map_or(0.0, |c| c[2] as f32),
+        ..Params::default()
+    }
+    .shadows(r.shadows);
+    build(
+        Renderer::Photometric(r.clone()),
+        context,
+        PHOTOMETRIC_WGSL,
+        &model,
+        uniforms,
+        3,
+    )
+}
+
+fn calibrated(r: &CalibratedRenderer, context: &GpuContext) -> Result<GpuRenderer, GpuError> {
+    let mut model: Vec<[f32; 4]> = r
+        .background
+        .iter()
+        .chain(&r.map.coef)
+        .copied()
+        .map(rgb)
+        .collect();
+    let mut uniforms = Params {
+        width: r.width_px as u32,
+        height: r.height_px as u32,
+        nodes: r.map.nodes as u32,
+        ..Params::default()
+    };
+    if let Some(sh) = &r.shadows {
+        model.extend(sh.shares.iter().copied().map(rgb));
+        push_lights(&mut model, &sh.lights);
+        uniforms.lights = sh.lights.len() as u32;
+        uniforms = uniforms.shadows(Some(sh.settings));
+    }
+    build(
+        Renderer::Calibrated(r.clone()),
+        context,
+        CALIBRATED_WGSL,
+        &model,
+        uniforms,
+        1,
+    )
+}
+
+/// Compiles the model's shader and makes its buffers.
+fn build(
+    cpu: Renderer,
+    context: &GpuContext,
+    shader: &str,
+    model: &[[f32; 4]],
+    uniforms: Params,
+    fields: usize,
+) -> Result<GpuRenderer, GpuError> {
+    let (width_px, height_px) = (uniforms.width as usize, uniforms.height as usize);
+    let device = &context.device;
+    let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
+    let pixels = (width_px * height_px) as u64;
+    let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+        label: Some("sparsh-optics"),
+        source: wgpu::ShaderSource::Wgsl([COMMON_WGSL, shader].concat().into()),
+    });
+    let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+        label: Some("sparsh-optics"),
+        layout: None,
+        module: &module,
+        entry_point: Some("main"),
+        compilation_options: Default::default(),
+        cache: None,
+    });
+    let params = device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some("params"),
+        size: size_of::<Params>() as u64,
+        usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    });
+    let surface = device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some("surface"),
+        size: pixels * fields as u64 * 4,
+        usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    });
+    let model = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+        label: Some("model"),
+        contents: bytemuck::cast_slice(model),
+        usage: wgpu::BufferUsages::STORAGE,
+    });
+    let output = device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some("image"),
+        size: pixels * 4,
+        usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
+        mapped_at_creation: false,
+    });
+    let readback = device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some("readback"),
+        size: pixels * 4,
+        usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    });
+    let entries = [&params, &surface, &model, &output]
+        .iter()
+        .enumerate()
+        .map(|(binding, buffer)| wgpu::BindGroupEntry {
+            binding: binding as u32,
+            resource: buffer.as_entire_binding(),
+        })
+        .collect::<Vec<_>>();
+    let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+        label: Some("sparsh-optics"),
+        layout: &pipeline.get_bind_group_layout(0),
+        entries: &entries,
+    });
+    if let Some(e) = pollster::block_on(scope.pop()) {
+        return Err(GpuError::Device(e.to_string()));
+    }
+    Ok(GpuRenderer {
+        cpu: Box::new(cpu),
+        context: context.clone(),
+        uniforms,
+        pipeline,
+        bind_group,
+        params,
+        surface,
+        output,
+        readback,
+        fields,
+        width_px,
+        height_px,
+        busy: Arc::new(Mutex::new(())),
+    })
+}
