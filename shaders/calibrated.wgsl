@@ -47,5 +47,5 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
         }
         colour *= lit;
     }
-    image[c] = pack_rgb(colour);
+    image[c] = vec4<f32>(colour, 0.0);
 }

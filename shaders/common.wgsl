@@ -33,8 +33,8 @@ struct Params {
 @group(0) @binding(1) var<storage, read> surface: array<f32>;
 // The model's constant data: background (RGB 0–255) per pixel first, then model tables.
 @group(0) @binding(2) var<storage, read> model: array<vec4<f32>>;
-// The 8-bit image, one pixel per word: R | G << 8 | B << 16.
-@group(0) @binding(3) var<storage, read_write> image: array<u32>;
+// The image before rounding (RGB, 0–255 scale; w unused).
+@group(0) @binding(3) var<storage, read_write> image: array<vec4<f32>>;
 
 fn pixel_count() -> u32 {
     return params.width * params.height;
@@ -133,10 +133,4 @@ fn shadow_of(offset: u32, k: u32, i: u32, j: u32) -> f32 {
     let l = light_position(offset, k).xyz;
     let p = vec3<f32>(x_mm(i), y_mm(j), -uz_at(i, j));
     return visibility(p, vec3<f32>(l.x, l.y, -l.z));
-}
-
-// Rounds half away from zero and clamps to 0–255, like the CPU path.
-fn pack_rgb(v: vec3<f32>) -> u32 {
-    let c = vec3<u32>(clamp(floor(v + vec3<f32>(0.5)), vec3<f32>(0.0), vec3<f32>(255.0)));
-    return c.x | (c.y << 8u) | (c.z << 16u);
 }

@@ -46,5 +46,5 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
         rgb += light_colour(lights, k) * e;
     }
     let flat = model[n_px + c];
-    image[c] = pack_rgb(model[c].rgb + params.gain * flat.w * (rgb - flat.rgb));
+    image[c] = vec4<f32>(model[c].rgb + params.gain * flat.w * (rgb - flat.rgb), 0.0);
 }

@@ -1,7 +1,8 @@
 //! The image-formation models as wgpu compute shaders (`shaders/*.wgsl` at the repository root):
 //! the same maths as the CPU path in f32, one invocation per pixel, so the image of a surface is
 //! the same on every run. Buffers and the pipeline are made once per renderer and reused for
-//! every frame; only the surface is uploaded and the 8-bit image read back.
+//! every frame; only the surface is uploaded and the image read back before rounding, which the
+//! CPU does as on its own path.
 
 use std::sync::{Arc, Mutex, OnceLock};
 
@@ -161,6 +162,12 @@ impl GpuRenderer {
 
     /// The image of a deformed surface (its grid must match the image size).
     pub fn render(&self, surface: &Surface) -> Result<RgbImage, GpuError> {
+        let pixels = self.render_linear(surface)?;
+        Ok(crate::to_image(self.width_px, self.height_px, &pixels))
+    }
+
+    /// The image of a deformed surface before rounding (RGB, 0–255 scale).
+    pub fn render_linear(&self, surface: &Surface) -> Result<Vec<[f32; 3]>, GpuError> {
         assert_eq!(
             (surface.grid.nx, surface.grid.ny),
             (self.width_px, self.height_px),
@@ -204,30 +211,25 @@ impl GpuRenderer {
         let (tx, rx) = std::sync::mpsc::channel();
         self.readback
             .map_async(wgpu::MapMode::Read, .., move |r| drop(tx.send(r)));
+        let device_error = |e: &dyn std::fmt::Display| GpuError::Device(e.to_string());
         ctx.device
             .poll(wgpu::PollType::wait_indefinitely())
-            .map_err(|e| GpuError::Device(e.to_string()))?;
+            .map_err(|e| device_error(&e))?;
         rx.recv()
-            .map_err(|e| GpuError::Device(e.to_string()))?
-            .map_err(|e| GpuError::Device(e.to_string()))?;
-        let raw: Vec<u8> = {
+            .map_err(|e| device_error(&e))?
+            .map_err(|e| device_error(&e))?;
+        let pixels = {
             let view = self
                 .readback
                 .get_mapped_range(..)
-                .map_err(|e| GpuError::Device(e.to_string()))?;
-            bytemuck::cast_slice::<u8, u32>(&view)
+                .map_err(|e| device_error(&e))?;
+            bytemuck::cast_slice::<u8, [f32; 4]>(&view)
                 .iter()
-                .flat_map(|p| {
-                    let [r, g, b, _] = p.to_le_bytes();
-                    [r, g, b]
-                })
+                .map(|p| [p[0], p[1], p[2]])
                 .collect()
         };
         self.readback.unmap();
-        Ok(
-            RgbImage::from_raw(self.width_px as u32, self.height_px as u32, raw)
-                .expect("readback matches the image size"),
-        )
+        Ok(pixels)
     }
 }
 
@@ -351,13 +353,13 @@ fn build(
     });
     let output = device.create_buffer(&wgpu::BufferDescriptor {
         label: Some("image"),
-        size: pixels * 4,
+        size: pixels * 16,
         usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
         mapped_at_creation: false,
     });
     let readback = device.create_buffer(&wgpu::BufferDescriptor {
         label: Some("readback"),
-        size: pixels * 4,
+        size: pixels * 16,
         usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
         mapped_at_creation: false,
     });

@@ -49,6 +49,15 @@ impl Renderer {
         }
     }
 
+    /// The image of a deformed surface before rounding (RGB, 0–255 scale).
+    pub fn render_linear(&self, surface: &Surface) -> Result<Vec<[f32; 3]>, GpuError> {
+        match self {
+            Renderer::Photometric(r) => Ok(r.render_linear(surface)),
+            Renderer::Calibrated(r) => Ok(r.render_linear(surface)),
+            Renderer::Gpu(r) => r.render_linear(surface),
+        }
+    }
+
     /// The same model on the GPU of `context` (buffers and pipeline made here, once).
     pub fn on_gpu(&self, context: &GpuContext) -> Result<Renderer, GpuError> {
         GpuRenderer::new(self, context).map(Renderer::Gpu)

@@ -85,6 +85,16 @@ fn check_parity(label: &str, cpu: Renderer, ctx: &GpuContext, surfaces: [Deforma
             "{label} surface {k}: max abs difference {max}/255, {count} of {n} channels differ"
         );
         assert!(max <= 1, "{label} surface {k}: CPU and GPU differ by {max}");
+        // Before rounding: f32 against the CPU's f64 arithmetic.
+        let linear = cpu
+            .render_linear(&d.surface())
+            .unwrap()
+            .iter()
+            .zip(&gpu.render_linear(&d.surface()).unwrap())
+            .flat_map(|(a, b)| (0..3).map(move |ch| (a[ch] - b[ch]).abs()))
+            .fold(0.0f32, f32::max);
+        eprintln!("{label} surface {k}: before rounding, max abs difference {linear:.2e}");
+        assert!(linear < 0.1, "{label} surface {k}: linear values differ by {linear}");
         let (contrast, _) = difference(&want, &background);
         assert!(
             contrast >= 20,
