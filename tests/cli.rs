@@ -684,3 +684,67 @@ fn render_on_the_gpu_matches_the_cpu_within_a_level() {
         .unwrap();
     assert!(worst <= 1, "CPU and GPU frames differ by {worst}");
 }
+
+#[test]
+fn quick_study_writes_tables_and_charts() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("study");
+    let table = tmp.path().join("table.csv");
+    let out = sparsh(&[
+        "study",
+        "--quick",
+        "--out",
+        dir.to_str().unwrap(),
+        "--table",
+        table.to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let read = |name: &str| std::fs::read_to_string(dir.join(name)).unwrap();
+    assert!(read("study.csv").starts_with("scene,rung,a_over_cell,"));
+    assert!(read("stability.csv").starts_with("sweep,value,rung,"));
+    let written = read("solver_table.csv");
+    assert_eq!(std::fs::read_to_string(&table).unwrap(), written);
+    let parsed = sparsh_scene::auto::SolverTable::parse(&written).unwrap();
+    assert!(!parsed.rows.is_empty());
+    for (stem, size, needle) in [
+        ("error_vs_time", (1100, 760), "Pareto front"),
+        ("error_vs_time_layers", (1100, 760), "Pareto front"),
+        ("stability_geometric", (1300, 560), "Stability map"),
+        ("stability_halfspace", (1300, 560), "Stability map"),
+        ("stability_layered", (1300, 560), "Stability map"),
+    ] {
+        let png = image::open(dir.join(format!("{stem}.png"))).unwrap();
+        assert_eq!((png.width(), png.height()), size, "{stem}");
+        let svg = read(&format!("{stem}.svg"));
+        assert!(svg.starts_with("<svg") && svg.contains(needle), "{stem}");
+    }
+
+    // An output path that is a file is refused on one line.
+    let file = tmp.path().join("file");
+    std::fs::write(&file, "x").unwrap();
+    let out = sparsh(&["study", "--quick", "--out", file.to_str().unwrap()]);
+    assert_user_error(&out, "cannot create");
+}
+
+#[test]
+fn auto_solver_scene_renders() {
+    let tmp = tempfile::tempdir().unwrap();
+    let scene = write_scene(
+        tmp.path(),
+        &SMALL_SCENE.replace(
+            "solver = \"geometric\"",
+            "solver = \"auto\"\ntolerance = 0.2",
+        ),
+    );
+    let png = tmp.path().join("f.png");
+    let out = sparsh(&[
+        "render",
+        scene.to_str().unwrap(),
+        "--frame",
+        "7",
+        "--out",
+        png.to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    assert!(png.exists());
+}

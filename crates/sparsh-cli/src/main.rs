@@ -3,6 +3,7 @@
 mod dataset;
 mod optics;
 mod pretrain;
+mod study;
 mod validate;
 
 use std::path::PathBuf;
@@ -151,6 +152,19 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Chart every solver rung's speed against its accuracy on analytic scenes, map where each
+    /// one fails, and write the table `solver = "auto"` reads.
+    Study {
+        /// Output directory (study.csv, stability.csv, solver_table.csv, PNG and SVG charts).
+        #[arg(long)]
+        out: PathBuf,
+        /// Coarse grids and one run per point (under a minute).
+        #[arg(long)]
+        quick: bool,
+        /// Also write the solver table here (assets/solver_table.csv is the one compiled in).
+        #[arg(long)]
+        table: Option<PathBuf>,
+    },
     /// Self-supervised pretraining of a ViT encoder (MAE, DINO, I-JEPA, V-JEPA) from a recipe.
     Pretrain {
         /// Training recipe (TOML), e.g. assets/ssl/mae_tiny_cpu.toml.
@@ -263,6 +277,7 @@ fn run(cli: Cli) -> Result<()> {
             Ok(())
         }
         Command::Validate { dir, json } => validate::validate(&dir, json),
+        Command::Study { out, quick, table } => study::study(&out, quick, table.as_deref()),
         Command::Pretrain {
             config,
             data,

@@ -111,14 +111,15 @@ fn gaussian_blur(src: &[f64], nx: usize, ny: usize, sigma: f64) -> Vec<f64> {
     let norm: f64 = weights.iter().sum();
     let weights: Vec<f64> = weights.iter().map(|w| w / norm).collect();
     let blur_line = |line: &[f64], out: &mut [f64]| {
+        // Only the taps that land on the grid: a kernel far wider than the grid (a thick gel on
+        // fine cells) costs the grid's width, not the kernel's.
         let n = line.len() as isize;
         for (i, o) in out.iter_mut().enumerate() {
+            let i = i as isize;
+            let (first, last) = ((-radius).max(-i), radius.min(n - 1 - i));
             let mut acc = 0.0;
-            for (w, k) in weights.iter().zip(-radius..=radius) {
-                let s = i as isize + k;
-                if (0..n).contains(&s) {
-                    acc += w * line[s as usize];
-                }
+            for k in first..=last {
+                acc += weights[(k + radius) as usize] * line[(i + k) as usize];
             }
             *o = acc;
         }

@@ -10,7 +10,7 @@
 //! elements with Polonsky–Keer normal contact and incremental Coulomb friction). The BEM rungs
 //! neglect normal–tangential coupling (Goodman's approximation, exact at ν = 0.5): `uz` comes from
 //! the pressure, `ux, uy` from the tractions. [`mod@reference`] holds the analytic solutions and
-//! [`validation`] the cases behind `sparsh validate`.
+//! [`validation`] the cases behind `sparsh validate`; [`study`] charts speed against accuracy.
 #![warn(missing_docs)]
 
 mod bem;
@@ -18,6 +18,7 @@ mod fft;
 mod geometric;
 mod kernels;
 pub mod reference;
+pub mod study;
 pub mod validation;
 
 use sparsh_scene::{GapField, Gel, Grid, Pose, SolverKind};

@@ -44,7 +44,7 @@ pub enum Check {
     Cone,
     /// Sphere, then a tangential shift: tangential force and stick radius (Cattaneo–Mindlin).
     CattaneoMindlin,
-    /// Sphere on an incompressible bonded layer: force (Garcia & Garcia 2018).
+    /// Sphere on an incompressible bonded layer, with the scene's rung: force (Garcia & Garcia 2018).
     BondedLayer,
     /// The layered rung on a layer much thicker than the contact against the half-space rung.
     LayeredVsHalfspace,
@@ -287,27 +287,49 @@ pub fn run_case(path: &Path) -> Result<Report, ValidationError> {
 
 /// A compared quantity.
 #[derive(Debug, Clone, PartialEq)]
-struct Value {
-    quantity: &'static str,
-    analytic: f64,
-    simulated: f64,
+pub struct Value {
+    /// Quantity, with its unit (`force (N)`, …).
+    pub quantity: &'static str,
+    /// Reference value.
+    pub analytic: f64,
+    /// Solver value.
+    pub simulated: f64,
 }
 
 impl Value {
-    fn rel_error(&self) -> f64 {
+    /// (simulated − analytic)/analytic.
+    pub fn rel_error(&self) -> f64 {
         (self.simulated - self.analytic) / self.analytic
     }
 }
 
-/// The outcome of a trajectory: the last frame's fields and its total approach (mm).
-struct Run {
-    fields: Fields,
-    approach_mm: f64,
+/// The compared quantities of one check, with the work spent on them.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Evaluation {
+    /// Compared quantities; the first is the force the check is about.
+    pub values: Vec<Value>,
+    /// Frames solved (a Cattaneo–Mindlin check solves the normal problem twice).
+    pub frames: usize,
+    /// Normal load of the last frame solved (N).
+    pub normal_force_n: f64,
+}
+
+/// The outcome of a trajectory: the last frame's fields, its total approach of the indenter's
+/// tip (mm, for unrotated indenters) and the number of frames solved.
+pub(crate) struct Run {
+    pub(crate) fields: Fields,
+    pub(crate) approach_mm: f64,
+    pub(crate) frames: usize,
 }
 
 /// Solves the scene's frames in order on `grid` with `kind`, then `extra` poses (tangential
 /// steps) at the last frame's normal control.
-fn run(scene: &Scene, kind: SolverKind, grid: Grid, extra: &[Pose]) -> Result<Run, ContactError> {
+pub(crate) fn run(
+    scene: &Scene,
+    kind: SolverKind,
+    grid: Grid,
+    extra: &[Pose],
+) -> Result<Run, ContactError> {
     let mut solver = solver_for(kind, &scene.gel, grid);
     let frames = scene.frames();
     let mut steps: Vec<(Pose, Option<f64>)> =
@@ -316,6 +338,7 @@ fn run(scene: &Scene, kind: SolverKind, grid: Grid, extra: &[Pose]) -> Result<Ru
     steps.extend(extra.iter().map(|p| (*p, last_force)));
     let mut previous: Option<Pose> = None;
     let mut last = None;
+    let frames = steps.len();
     for (pose, force) in steps {
         let gap = GapField::cast(&scene.indenter, &pose, grid);
         let shift = match &previous {
@@ -328,10 +351,13 @@ fn run(scene: &Scene, kind: SolverKind, grid: Grid, extra: &[Pose]) -> Result<Ru
             rigid_shift_mm: &shift,
         };
         let fields = solver.solve(&input)?;
-        let approach_mm = gap.max_penetration_mm() + fields.approach_offset_mm;
+        // The tip's approach from the pose, not from the sampled gap (which misses the tip when
+        // no cell centre lies under it): the analytic indenters have their tip at the origin.
+        let approach_mm = fields.approach_offset_mm - pose.position_mm.z;
         last = Some(Run {
             fields,
             approach_mm,
+            frames,
         });
         previous = Some(pose);
     }
@@ -347,6 +373,29 @@ fn peak_pressure_kpa(fields: &Fields) -> f64 {
 }
 
 fn evaluate(scene: &Scene, spec: &Spec, grid: Grid) -> Result<Vec<Value>, ContactError> {
+    let case = Case {
+        check: spec.check,
+        q_over_mu_p: spec.q_over_mu_p.unwrap_or(f64::NAN),
+        tangential_steps: spec.tangential_steps,
+    };
+    Ok(evaluate_case(scene, &case, grid)?.values)
+}
+
+/// What a check needs beyond its scene.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Case {
+    /// The analytic solution compared with.
+    pub check: Check,
+    /// Cattaneo–Mindlin: tangential load as a fraction of μP; at 1 or more the shift is this
+    /// multiple of the shift that starts gross sliding, and the reference load is μP.
+    pub q_over_mu_p: f64,
+    /// Cattaneo–Mindlin: increments of the tangential shift.
+    pub tangential_steps: usize,
+}
+
+/// Solves `scene` with its own solver rung on `grid` (the layered-against-half-space check
+/// runs both) and compares with the analytic solution of `case.check`.
+pub fn evaluate_case(scene: &Scene, case: &Case, grid: Grid) -> Result<Evaluation, ContactError> {
     let gel = scene.gel;
     let e_star = gel.effective_modulus_kpa();
     let spec_indenter = &scene.indenter_spec;
@@ -360,9 +409,16 @@ fn evaluate(scene: &Scene, spec: &Spec, grid: Grid) -> Result<Vec<Value>, Contac
         analytic,
         simulated,
     };
-    let out = match spec.check {
+    let mut frames = 0;
+    let mut normal_force_n = 0.0;
+    let mut count = |r: Run| {
+        frames += r.frames;
+        normal_force_n = r.fields.force_n[2];
+        r
+    };
+    let out = match case.check {
         Check::Hertz => {
-            let r = run(scene, scene.solver, grid, &[])?;
+            let r = count(run(scene, scene.solver, grid, &[])?);
             let force = hertz.force_n(r.approach_mm);
             vec![
                 v("force (N)", force, r.fields.force_n[2]),
@@ -379,7 +435,7 @@ fn evaluate(scene: &Scene, spec: &Spec, grid: Grid) -> Result<Vec<Value>, Contac
             ]
         }
         Check::HertzLoad => {
-            let r = run(scene, scene.solver, grid, &[])?;
+            let r = count(run(scene, scene.solver, grid, &[])?);
             let force = r.fields.force_n[2];
             vec![
                 v("approach (mm)", hertz.approach_mm(force), r.approach_mm),
@@ -396,7 +452,7 @@ fn evaluate(scene: &Scene, spec: &Spec, grid: Grid) -> Result<Vec<Value>, Contac
             ]
         }
         Check::FlatPunch => {
-            let r = run(scene, scene.solver, grid, &[])?;
+            let r = count(run(scene, scene.solver, grid, &[])?);
             vec![v(
                 "force (N)",
                 reference::flat_punch_force_n(radius_mm, r.approach_mm, e_star),
@@ -408,7 +464,7 @@ fn evaluate(scene: &Scene, spec: &Spec, grid: Grid) -> Result<Vec<Value>, Contac
                 .half_angle_deg
                 .unwrap_or(f64::NAN)
                 .to_radians();
-            let r = run(scene, scene.solver, grid, &[])?;
+            let r = count(run(scene, scene.solver, grid, &[])?);
             vec![
                 v(
                     "force (N)",
@@ -423,8 +479,8 @@ fn evaluate(scene: &Scene, spec: &Spec, grid: Grid) -> Result<Vec<Value>, Contac
             ]
         }
         Check::CattaneoMindlin => {
-            let ratio = spec.q_over_mu_p.unwrap_or(f64::NAN);
-            let normal = run(scene, scene.solver, grid, &[])?;
+            let ratio = case.q_over_mu_p;
+            let normal = count(run(scene, scene.solver, grid, &[])?);
             let force = hertz.force_n(normal.approach_mm);
             let cm = CattaneoMindlin {
                 contact_radius_mm: hertz.contact_radius_mm(force),
@@ -434,8 +490,13 @@ fn evaluate(scene: &Scene, spec: &Spec, grid: Grid) -> Result<Vec<Value>, Contac
                 poisson_ratio: gel.poisson_ratio,
             };
             let last = scene.frames().last().expect("frames").pose;
-            let shift = cm.shift_mm(ratio);
-            let steps = spec.tangential_steps.max(1);
+            let shift = if ratio >= 1.0 {
+                cm.shift_mm(1.0) * ratio
+            } else {
+                cm.shift_mm(ratio)
+            };
+            let load_ratio = ratio.min(1.0);
+            let steps = case.tangential_steps.max(1);
             let extra: Vec<Pose> = (1..=steps)
                 .map(|k| {
                     let mut p = last;
@@ -443,7 +504,7 @@ fn evaluate(scene: &Scene, spec: &Spec, grid: Grid) -> Result<Vec<Value>, Contac
                     p
                 })
                 .collect();
-            let r = run(scene, scene.solver, grid, &extra)?;
+            let r = count(run(scene, scene.solver, grid, &extra)?);
             let stick_cells = r
                 .fields
                 .contact
@@ -456,14 +517,18 @@ fn evaluate(scene: &Scene, spec: &Spec, grid: Grid) -> Result<Vec<Value>, Contac
             vec![
                 v(
                     "tangential_force (N)",
-                    ratio * gel.friction * force,
+                    load_ratio * gel.friction * force,
                     r.fields.force_n[0],
                 ),
-                v("stick_radius (mm)", cm.stick_radius_mm(ratio), stick_mm),
+                v(
+                    "stick_radius (mm)",
+                    cm.stick_radius_mm(load_ratio),
+                    stick_mm,
+                ),
             ]
         }
         Check::BondedLayer => {
-            let r = run(scene, SolverKind::Layered, grid, &[])?;
+            let r = count(run(scene, scene.solver, grid, &[])?);
             let hertz_a = (radius_mm * r.approach_mm).sqrt();
             let chi = hertz_a / gel.thickness_mm;
             vec![
@@ -476,8 +541,8 @@ fn evaluate(scene: &Scene, spec: &Spec, grid: Grid) -> Result<Vec<Value>, Contac
             ]
         }
         Check::LayeredVsHalfspace => {
-            let half = run(scene, SolverKind::Halfspace, grid, &[])?;
-            let layer = run(scene, SolverKind::Layered, grid, &[])?;
+            let half = count(run(scene, SolverKind::Halfspace, grid, &[])?);
+            let layer = count(run(scene, SolverKind::Layered, grid, &[])?);
             vec![v(
                 "force (N)",
                 half.fields.force_n[2],
@@ -485,5 +550,9 @@ fn evaluate(scene: &Scene, spec: &Spec, grid: Grid) -> Result<Vec<Value>, Contac
             )]
         }
     };
-    Ok(out)
+    Ok(Evaluation {
+        values: out,
+        frames,
+        normal_force_n,
+    })
 }

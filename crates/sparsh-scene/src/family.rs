@@ -498,6 +498,7 @@ impl FamilyFile {
             seed,
             solver: self.solver,
             mechanics_stride: self.mechanics_stride,
+            auto: None,
             mechanics_margin_mm: self.mechanics_margin_mm,
             sensor,
             gel,

@@ -6,6 +6,7 @@
 //! Units: millimetres, seconds, degrees, newtons, kilopascals. Frame: see [`grid`].
 #![warn(missing_docs)]
 
+pub mod auto;
 mod error;
 mod family;
 mod gap;
@@ -18,6 +19,7 @@ use std::path::{Path, PathBuf};
 
 use serde::Deserialize;
 
+pub use auto::AutoChoice;
 pub use error::SceneError;
 pub use family::{DatasetSpec, MotionKind, Range, SequenceScene, Split, sequence_seed};
 pub use gap::GapField;
@@ -155,6 +157,18 @@ impl std::str::FromStr for SolverKind {
             .find(|k| k.name() == s)
             .ok_or_else(|| format!("unknown solver `{s}` (geometric, halfspace or layered)"))
     }
+}
+
+/// What `solver = "..."` asks for: a rung, or `auto` (the cheapest rung and grid predicted to
+/// meet `tolerance`, see [`auto`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+enum SolverRequest {
+    #[default]
+    Geometric,
+    Halfspace,
+    Layered,
+    Auto,
 }
 
 /// A ground-truth field channel.
@@ -308,9 +322,9 @@ struct SceneFile {
     #[serde(default)]
     seed: u64,
     #[serde(default)]
-    solver: SolverKind,
-    #[serde(default = "one_cell")]
-    mechanics_stride: usize,
+    solver: SolverRequest,
+    tolerance: Option<f64>,
+    mechanics_stride: Option<usize>,
     #[serde(default)]
     mechanics_margin_mm: f64,
     sensor: SensorSection,
@@ -331,10 +345,12 @@ pub struct Scene {
     pub source: String,
     /// Seed of every random choice.
     pub seed: u64,
-    /// Contact solver rung.
+    /// Contact solver rung (chosen by the table under `solver = "auto"`).
     pub solver: SolverKind,
     /// Pixels per mechanics cell along each axis (1: the contact is solved at every pixel).
     pub mechanics_stride: usize,
+    /// What `solver = "auto"` chose and why; `None` for a named solver.
+    pub auto: Option<AutoChoice>,
     /// How far the gel, and the contact solve, extends beyond the camera's view on each side
     /// (mm; rounded up to whole mechanics cells).
     pub mechanics_margin_mm: f64,
@@ -367,7 +383,9 @@ impl Scene {
         let file: SceneFile =
             toml::from_str(&source).map_err(|e| SceneError::from_toml(path, &source, e))?;
         let sensor = file.sensor.resolve(path)?;
-        check_stride(path, "mechanics_stride", file.mechanics_stride, &sensor)?;
+        if let Some(stride) = file.mechanics_stride {
+            check_stride(path, "mechanics_stride", stride, &sensor)?;
+        }
         check_margin(path, "mechanics_margin_mm", file.mechanics_margin_mm)?;
         file.gel.validate(path, "gel")?;
         let trajectory = file.trajectory;
@@ -414,12 +432,68 @@ impl Scene {
             }
         }
         let indenter = file.indenter.build(path)?;
+        let fixed = |kind| {
+            if file.tolerance.is_some() {
+                return Err(SceneError::invalid(
+                    path,
+                    "tolerance",
+                    "is only read with solver = \"auto\"",
+                ));
+            }
+            Ok((kind, file.mechanics_stride.unwrap_or(1), None))
+        };
+        let (solver, mechanics_stride, auto) = match file.solver {
+            SolverRequest::Geometric => fixed(SolverKind::Geometric)?,
+            SolverRequest::Halfspace => fixed(SolverKind::Halfspace)?,
+            SolverRequest::Layered => fixed(SolverKind::Layered)?,
+            SolverRequest::Auto => {
+                if file.mechanics_stride.is_some() {
+                    return Err(SceneError::invalid(
+                        path,
+                        "mechanics_stride",
+                        "is chosen by solver = \"auto\"; remove it or name a solver",
+                    ));
+                }
+                let tolerance = file.tolerance.unwrap_or(auto::DEFAULT_TOLERANCE);
+                if !(tolerance > 0.0 && tolerance < 1.0) {
+                    return Err(SceneError::invalid(
+                        path,
+                        "tolerance",
+                        format!("must be a relative force error in (0, 1), got {tolerance}"),
+                    ));
+                }
+                let frames = sample(&trajectory, sensor.fps);
+                let radius = auto::contact_radius_estimate_mm(
+                    &file.indenter,
+                    &indenter,
+                    &frames,
+                    &sensor,
+                    &file.gel,
+                )
+                .map_err(|m| SceneError::invalid(path, "solver", m))?;
+                let table = auto::SolverTable::builtin();
+                let candidates = auto::candidates(table, &sensor, &file.gel, radius, tolerance);
+                let choice = auto::choose(&candidates).ok_or_else(|| {
+                    SceneError::invalid(
+                        path,
+                        "solver",
+                        format!(
+                            "auto: no studied rung resolves a contact radius of about \
+                             {radius:.3} mm at {} mm per pixel",
+                            sensor.mm_per_px
+                        ),
+                    )
+                })?;
+                (choice.solver, choice.mechanics_stride, Some(choice))
+            }
+        };
         Ok(Scene {
             path: path.to_path_buf(),
             source,
             seed: file.seed,
-            solver: file.solver,
-            mechanics_stride: file.mechanics_stride,
+            solver,
+            mechanics_stride,
+            auto,
             mechanics_margin_mm: file.mechanics_margin_mm,
             sensor,
             gel: file.gel,

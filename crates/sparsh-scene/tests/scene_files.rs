@@ -325,3 +325,58 @@ fn every_preset_resolves_and_modes_share_the_view() {
         assert_eq!(a.lights, b.lights);
     }
 }
+
+#[test]
+fn auto_solver_keys_are_checked() {
+    let auto = |extra: &str| BASE.replace("seed = 3", &format!("seed = 3\n{extra}"));
+    let line = error_of(&auto("tolerance = 0.02"));
+    assert!(
+        line.contains("tolerance") && line.contains("auto"),
+        "{line}"
+    );
+    let line = error_of(&auto("solver = \"auto\"\nmechanics_stride = 2"));
+    assert!(
+        line.contains("mechanics_stride") && line.contains("auto"),
+        "{line}"
+    );
+    for bad in ["0.0", "-0.1", "1.5", "nan"] {
+        let line = error_of(&auto(&format!("solver = \"auto\"\ntolerance = {bad}")));
+        assert!(line.contains("tolerance"), "{line}");
+    }
+    // Never touching the gel leaves nothing to choose for.
+    let line = error_of(&auto("solver = \"auto\"").replace(
+        "position_mm = [0.0, 0.0, -1.0]",
+        "position_mm = [0.0, 0.0, 1.0]",
+    ));
+    assert!(
+        line.contains("solver") && line.contains("never touches"),
+        "{line}"
+    );
+    // Force control needs a sphere.
+    let line = error_of(
+        &auto("solver = \"auto\"")
+            .replace(
+                "shape = \"sphere\"\nradius_mm = 5.0",
+                "shape = \"cone\"\nhalf_angle_deg = 60.0",
+            )
+            .replace(
+                "position_mm = [0.0, 0.0, 0.5]",
+                "position_mm = [0.0, 0.0, 0.5]\nnormal_force_n = 0.5",
+            )
+            .replace(
+                "position_mm = [0.0, 0.0, -1.0]",
+                "position_mm = [0.0, 0.0, -1.0]\nnormal_force_n = 1.0",
+            ),
+    );
+    assert!(
+        line.contains("normal_force_n") && line.contains("sphere"),
+        "{line}"
+    );
+    // A named solver keeps its own stride and records no choice.
+    let scene = parse(&auto("solver = \"layered\"\nmechanics_stride = 2")).unwrap();
+    assert_eq!(
+        (scene.solver, scene.mechanics_stride),
+        (sparsh_scene::SolverKind::Layered, 2)
+    );
+    assert!(scene.auto.is_none());
+}

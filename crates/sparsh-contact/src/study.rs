@@ -1,0 +1,795 @@
+//! Speed against accuracy of the solver rungs, and where each one fails (`sparsh study`).
+//!
+//! - **Accuracy study**: every rung × grid resolution (contact radius a in cells) × scene with an
+//!   analytic answer — Hertz, flat punch, cone (Sneddon), Cattaneo–Mindlin (tangential force) on a
+//!   thick gel (a/h = 0.002), and a sphere on incompressible bonded layers of a/h = 0.1 … 1 (Garcia
+//!   & Garcia 2018) — timing each frame and comparing the force with the analytic one.
+//! - **Stability map**: per rung, one parameter at a time pushed towards where models break:
+//!   indentation depth over gel thickness, cone semi-angle down to 10° and a box edge, Poisson
+//!   ratio up to 0.5, friction 0–2, tangential load up to and past gross slip, grid coarseness.
+//!   Every point records whether it met the tolerance, missed it, did not converge, left the
+//!   model's validity or (never expected) produced a non-finite value or a panic — with the
+//!   reason.
+//! - **Solver table**: the worst error and cost of each rung at each studied (a/cell, a/h), built
+//!   from a subset of the scenes (the cone and a/h = 0.3 are held out to test `solver = "auto"`
+//!   on), read by [`sparsh_scene::auto`].
+//!
+//! Times are the fastest of `repeats` runs on the calling thread's rayon pool (`sparsh study`
+//! runs on one thread so that other load on the machine perturbs the numbers least).
+
+use std::panic::{AssertUnwindSafe, catch_unwind};
+use std::path::Path;
+use std::time::Instant;
+
+use sparsh_scene::auto::{SolverTable, TableRow};
+use sparsh_scene::{Scene, SolverKind};
+
+use crate::ContactError;
+use crate::validation::{Case, Check, evaluate_case, run};
+
+/// Gel thickness of the half-space scenes (mm): a/h = 0.002 for their 1 mm contacts.
+const THICK_GEL_MM: f64 = 500.0;
+
+/// What to run.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StudyOptions {
+    /// Grid resolutions of the accuracy study: contact radius in cells.
+    pub contact_cells: Vec<f64>,
+    /// Cell size of the stability sweeps other than grid coarseness (mm, for 1 mm contacts).
+    pub stability_cell_mm: f64,
+    /// Relative force error a point must meet (the stability map's pass mark).
+    pub tolerance: f64,
+    /// Runs per timed point; the fastest counts.
+    pub repeats: usize,
+}
+
+impl StudyOptions {
+    /// The full study (`sparsh study`).
+    pub fn full() -> StudyOptions {
+        StudyOptions {
+            contact_cells: vec![2.5, 5.0, 10.0, 20.0, 40.0],
+            stability_cell_mm: 0.1,
+            tolerance: 0.02,
+            repeats: 3,
+        }
+    }
+
+    /// A small study for CI (`sparsh study --quick`): coarse grids, one run per point.
+    pub fn quick() -> StudyOptions {
+        StudyOptions {
+            contact_cells: vec![2.5, 5.0, 10.0],
+            stability_cell_mm: 0.2,
+            tolerance: 0.02,
+            repeats: 1,
+        }
+    }
+}
+
+/// How a point ended.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Outcome {
+    /// Within tolerance.
+    Ok,
+    /// Solved, but the force misses the reference by more than the tolerance.
+    OverTolerance,
+    /// An iteration cap was reached ([`ContactError::NotConverged`]).
+    NotConverged,
+    /// The solver refused the state ([`ContactError::OutOfValidity`]).
+    OutOfValidity,
+    /// The solver returned a non-finite force (a bug: never expected).
+    NonFinite,
+    /// The solver panicked (a bug: never expected).
+    Panic,
+}
+
+impl Outcome {
+    /// Every outcome, best first.
+    pub const ALL: [Outcome; 6] = [
+        Outcome::Ok,
+        Outcome::OverTolerance,
+        Outcome::NotConverged,
+        Outcome::OutOfValidity,
+        Outcome::NonFinite,
+        Outcome::Panic,
+    ];
+
+    /// Name used in the CSV files.
+    pub fn name(self) -> &'static str {
+        match self {
+            Outcome::Ok => "ok",
+            Outcome::OverTolerance => "over_tolerance",
+            Outcome::NotConverged => "not_converged",
+            Outcome::OutOfValidity => "out_of_validity",
+            Outcome::NonFinite => "non_finite",
+            Outcome::Panic => "panic",
+        }
+    }
+}
+
+/// One timed, compared solve.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Measurement {
+    /// Reference force (N; `None` when the solve failed).
+    pub reference_n: Option<f64>,
+    /// Solver force (N).
+    pub simulated_n: Option<f64>,
+    /// (simulated − reference)/scale, with scale = |reference|, or the normal load when the
+    /// reference is zero (friction 0).
+    pub rel_error: Option<f64>,
+    /// Fastest wall time per frame (ms); the time to failure for failed points.
+    pub ms_per_frame: f64,
+    /// Frames solved per run.
+    pub frames: usize,
+    /// How it ended.
+    pub outcome: Outcome,
+    /// Why it is not `ok` (empty when it is).
+    pub reason: String,
+}
+
+/// One point of the accuracy study.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StudyPoint {
+    /// Scene name (`hertz`, `flat_punch`, `cone`, `cattaneo_mindlin`, `bonded_layer_0.5`, …).
+    pub scene: String,
+    /// Rung.
+    pub rung: SolverKind,
+    /// Contact radius over cell size (nominal, from the analytic radius).
+    pub a_over_cell: f64,
+    /// Cell size (mm).
+    pub cell_mm: f64,
+    /// Grid cells per side.
+    pub cells_per_side: usize,
+    /// Contact radius over gel thickness.
+    pub a_over_h: f64,
+    /// Whether the solver table is built from this point (the others test `solver = "auto"`).
+    pub in_table: bool,
+    /// The result.
+    pub measurement: Measurement,
+}
+
+/// One point of the stability map.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StabilityPoint {
+    /// Swept parameter (`depth_over_thickness`, `sharpness`, …).
+    pub sweep: &'static str,
+    /// Its value as shown on the map (`δ/h 0.4`, `cone 10°`, `box edge`).
+    pub label: String,
+    /// Rung.
+    pub rung: SolverKind,
+    /// Cell size (mm).
+    pub cell_mm: f64,
+    /// What the force is compared with.
+    pub reference: &'static str,
+    /// The result.
+    pub measurement: Measurement,
+}
+
+/// Everything a study produces.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Study {
+    /// Options it ran with.
+    pub options: StudyOptions,
+    /// Accuracy study.
+    pub points: Vec<StudyPoint>,
+    /// Stability map.
+    pub stability: Vec<StabilityPoint>,
+    /// The table for `solver = "auto"`.
+    pub table: SolverTable,
+}
+
+/// The gel, indenter and pose of a scene, without its grid.
+#[derive(Debug, Clone)]
+struct Setup {
+    indenter: String,
+    depth_mm: f64,
+    position_xy_mm: [f64; 2],
+    rotation_deg: [f64; 3],
+    poisson: f64,
+    thickness_mm: f64,
+    friction: f64,
+    box_mm: f64,
+}
+
+impl Setup {
+    fn sphere(radius_mm: f64, depth_mm: f64) -> Setup {
+        Setup {
+            indenter: format!("shape = \"sphere\"\nradius_mm = {radius_mm:?}"),
+            depth_mm,
+            position_xy_mm: [0.0, 0.0],
+            rotation_deg: [0.0; 3],
+            poisson: 0.48,
+            thickness_mm: THICK_GEL_MM,
+            friction: 1.0,
+            box_mm: 6.4,
+        }
+    }
+
+    /// Rigid cone pressed so that Sneddon's contact radius is 1 mm.
+    fn cone(half_angle_deg: f64) -> Setup {
+        let depth_mm = std::f64::consts::FRAC_PI_2 / half_angle_deg.to_radians().tan();
+        Setup {
+            indenter: format!(
+                "shape = \"cone\"\nhalf_angle_deg = {half_angle_deg:?}\nheight_mm = {:?}",
+                depth_mm + 2.0
+            ),
+            depth_mm,
+            ..Setup::sphere(1.0, 0.0)
+        }
+    }
+
+    /// The scene on a square grid of `cell_mm` cells (odd count, so a cell sits on the axis).
+    fn scene(&self, kind: SolverKind, cell_mm: f64) -> Result<Scene, String> {
+        let n = ((self.box_mm / cell_mm).round() as usize / 2 * 2 + 1).max(9);
+        let [x, y] = self.position_xy_mm;
+        let text = format!(
+            "solver = \"{}\"\n[sensor]\npreset = \"digit\"\nwidth_px = {n}\nheight_px = {n}\n\
+             mm_per_px = {cell_mm:?}\n[gel]\nyoungs_modulus_kpa = 300.0\npoisson_ratio = {:?}\n\
+             thickness_mm = {:?}\nfriction = {:?}\n[indenter]\n{}\n[[trajectory]]\n\
+             time_s = 0.0\nposition_mm = [{x:?}, {y:?}, {:?}]\nrotation_deg = {:?}\n",
+            kind.name(),
+            self.poisson,
+            self.thickness_mm,
+            self.friction,
+            self.indenter,
+            -self.depth_mm,
+            self.rotation_deg,
+        );
+        Scene::parse(Path::new("study"), text).map_err(|e| format!("scene: {e}"))
+    }
+}
+
+/// A solve that succeeded: reference and simulated force, frames, and the error's scale.
+struct Sample {
+    reference_n: f64,
+    simulated_n: f64,
+    scale_n: f64,
+    frames: usize,
+}
+
+/// Times `trial` (fastest of `repeats`), catches failures and panics, and grades the force.
+fn measure(
+    tolerance: f64,
+    repeats: usize,
+    trial: &dyn Fn() -> Result<Sample, String>,
+) -> Measurement {
+    let failed = |outcome, reason: String, ms| Measurement {
+        reference_n: None,
+        simulated_n: None,
+        rel_error: None,
+        ms_per_frame: ms,
+        frames: 0,
+        outcome,
+        reason,
+    };
+    let mut best_ms = f64::INFINITY;
+    let mut sample = None;
+    for _ in 0..repeats.max(1) {
+        let start = Instant::now();
+        let result = catch_unwind(AssertUnwindSafe(trial));
+        let ms = start.elapsed().as_secs_f64() * 1e3;
+        match result {
+            Err(payload) => {
+                let message = payload
+                    .downcast_ref::<&str>()
+                    .map(|s| s.to_string())
+                    .or_else(|| payload.downcast_ref::<String>().cloned())
+                    .unwrap_or_else(|| "unknown panic".into());
+                return failed(Outcome::Panic, format!("panic: {message}"), ms);
+            }
+            Ok(Err(reason)) => {
+                let outcome = if reason.contains("no convergence") {
+                    Outcome::NotConverged
+                } else {
+                    Outcome::OutOfValidity
+                };
+                return failed(outcome, reason, ms);
+            }
+            Ok(Ok(s)) => {
+                best_ms = best_ms.min(ms / s.frames.max(1) as f64);
+                sample = Some(s);
+            }
+        }
+    }
+    let Some(s) = sample else {
+        return failed(Outcome::Panic, "no run".into(), 0.0);
+    };
+    let rel = (s.simulated_n - s.reference_n) / s.scale_n;
+    let (outcome, reason) = if !(rel.is_finite() && s.simulated_n.is_finite()) {
+        (
+            Outcome::NonFinite,
+            format!(
+                "non-finite force {} against {}",
+                s.simulated_n, s.reference_n
+            ),
+        )
+    } else if rel.abs() > tolerance {
+        (
+            Outcome::OverTolerance,
+            format!(
+                "force error {:+.2} % beyond ±{} %",
+                100.0 * rel,
+                100.0 * tolerance
+            ),
+        )
+    } else {
+        (Outcome::Ok, String::new())
+    };
+    Measurement {
+        reference_n: Some(s.reference_n),
+        simulated_n: Some(s.simulated_n),
+        rel_error: rel.is_finite().then_some(rel),
+        ms_per_frame: best_ms,
+        frames: s.frames,
+        outcome,
+        reason,
+    }
+}
+
+/// Solves an analytic case and returns its force against the analytic one.
+fn analytic_trial(scene: &Scene, case: &Case) -> Result<Sample, String> {
+    let evaluation = evaluate_case(scene, case, scene.grid()).map_err(|e| e.to_string())?;
+    let force = &evaluation.values[0];
+    let scale_n = if force.analytic != 0.0 {
+        force.analytic.abs()
+    } else {
+        evaluation.normal_force_n.abs()
+    };
+    Ok(Sample {
+        reference_n: force.analytic,
+        simulated_n: force.simulated,
+        scale_n,
+        frames: evaluation.frames,
+    })
+}
+
+/// The normal force of a scene's last frame on its own grid.
+fn normal_force_n(scene: &Scene) -> Result<(f64, usize), ContactError> {
+    let r = run(scene, scene.solver, scene.grid(), &[])?;
+    Ok((r.fields.force_n[2], r.frames))
+}
+
+/// A scene of the accuracy study.
+struct AnalyticScene {
+    name: String,
+    setup: Setup,
+    case: Case,
+    a_over_h: f64,
+    in_table: bool,
+}
+
+fn case(check: Check) -> Case {
+    Case {
+        check,
+        q_over_mu_p: f64::NAN,
+        tangential_steps: 4,
+    }
+}
+
+fn mindlin(q_over_mu_p: f64) -> Case {
+    Case {
+        q_over_mu_p,
+        ..case(Check::CattaneoMindlin)
+    }
+}
+
+/// Bonded-layer contact radii over thickness of the accuracy study; 0.3 is held out of the table.
+const LAYER_A_OVER_H: [f64; 4] = [0.1, 0.3, 0.5, 1.0];
+
+/// Every scene has a 1 mm analytic contact radius (Hertz radius for the layers).
+fn analytic_scenes() -> Vec<AnalyticScene> {
+    let thick = 1.0 / THICK_GEL_MM;
+    let incompressible = |mut s: Setup| {
+        s.poisson = 0.5;
+        s
+    };
+    let mut scenes = vec![
+        AnalyticScene {
+            name: "hertz".into(),
+            setup: Setup::sphere(100.0, 0.01),
+            case: case(Check::Hertz),
+            a_over_h: thick,
+            in_table: true,
+        },
+        AnalyticScene {
+            name: "flat_punch".into(),
+            setup: Setup {
+                indenter: "shape = \"cylinder\"\nradius_mm = 1.0\nheight_mm = 2.0".into(),
+                ..Setup::sphere(1.0, 0.01)
+            },
+            case: case(Check::FlatPunch),
+            a_over_h: thick,
+            in_table: true,
+        },
+        AnalyticScene {
+            name: "cone".into(),
+            setup: Setup::cone(80.0),
+            case: case(Check::Cone),
+            a_over_h: thick,
+            in_table: false,
+        },
+        AnalyticScene {
+            name: "cattaneo_mindlin".into(),
+            setup: Setup {
+                friction: 0.5,
+                ..incompressible(Setup::sphere(100.0, 0.01))
+            },
+            case: mindlin(0.5),
+            a_over_h: thick,
+            in_table: true,
+        },
+    ];
+    for chi in LAYER_A_OVER_H {
+        scenes.push(AnalyticScene {
+            name: format!("bonded_layer_{chi}"),
+            setup: Setup {
+                thickness_mm: 1.0 / chi,
+                ..incompressible(Setup::sphere(100.0, 0.01))
+            },
+            case: case(Check::BondedLayer),
+            a_over_h: chi,
+            in_table: chi != 0.3,
+        });
+    }
+    scenes
+}
+
+/// One parameter value of a stability sweep: its label, the setup, the reference, the cell.
+struct SweepPoint {
+    sweep: &'static str,
+    label: String,
+    setup: Setup,
+    case: Option<Case>,
+    cell_mm: f64,
+}
+
+/// The reference names of the stability map, by check.
+fn reference_name(case: Option<&Case>) -> &'static str {
+    match case.map(|c| c.check) {
+        Some(Check::BondedLayer) => "Garcia & Garcia bonded layer",
+        Some(Check::Cone) => "Sneddon cone",
+        Some(Check::Hertz) => "Hertz",
+        Some(Check::CattaneoMindlin) => "Cattaneo-Mindlin tangential force",
+        Some(_) => "analytic",
+        None => "halfspace on a twice finer grid",
+    }
+}
+
+fn stability_sweeps(cell_mm: f64) -> Vec<SweepPoint> {
+    let mut points = Vec::new();
+    let mut push = |sweep, label: String, setup, case, cell_mm| {
+        points.push(SweepPoint {
+            sweep,
+            label,
+            setup,
+            case,
+            cell_mm,
+        })
+    };
+    // A 5 mm sphere on a 2 mm incompressible layer, pressed up to and past the layer's thickness.
+    for ratio in [0.01, 0.05, 0.1, 0.2, 0.4, 0.8, 1.2] {
+        let (radius, h) = (5.0, 2.0);
+        let depth = ratio * h;
+        let footprint = (2.0f64 * radius * depth - depth * depth).max(0.0).sqrt();
+        let setup = Setup {
+            poisson: 0.5,
+            thickness_mm: h,
+            box_mm: 3.2 * footprint + 1.0,
+            ..Setup::sphere(radius, depth)
+        };
+        push(
+            "depth_over_thickness",
+            format!("δ/h {ratio}"),
+            setup,
+            Some(case(Check::BondedLayer)),
+            cell_mm,
+        );
+    }
+    for angle in [80.0, 60.0, 45.0, 30.0, 20.0, 10.0] {
+        push(
+            "sharpness",
+            format!("cone {angle}°"),
+            Setup::cone(angle),
+            Some(case(Check::Cone)),
+            cell_mm,
+        );
+    }
+    // A 3 mm cube rolled 45° about x: its lower edge, along x, pressed 0.1 mm.
+    let half_diagonal = 1.5 * std::f64::consts::FRAC_1_SQRT_2;
+    push(
+        "sharpness",
+        "box edge".into(),
+        Setup {
+            indenter: "shape = \"box\"\nsize_mm = [3.0, 3.0, 3.0]".into(),
+            depth_mm: 0.1 - half_diagonal,
+            position_xy_mm: [0.0, half_diagonal],
+            rotation_deg: [45.0, 0.0, 0.0],
+            ..Setup::sphere(1.0, 0.0)
+        },
+        None,
+        cell_mm,
+    );
+    for nu in [0.0, 0.2, 0.3, 0.4, 0.45, 0.49, 0.5] {
+        push(
+            "poisson_ratio",
+            format!("ν {nu}"),
+            Setup {
+                poisson: nu,
+                ..Setup::sphere(100.0, 0.01)
+            },
+            Some(case(Check::Hertz)),
+            cell_mm,
+        );
+    }
+    for mu in [0.0, 0.25, 0.5, 1.0, 1.5, 2.0] {
+        push(
+            "friction",
+            format!("μ {mu}"),
+            Setup {
+                friction: mu,
+                poisson: 0.5,
+                ..Setup::sphere(100.0, 0.01)
+            },
+            Some(mindlin(0.5)),
+            cell_mm,
+        );
+    }
+    for q in [0.2, 0.5, 0.8, 0.95, 1.0, 1.5] {
+        push(
+            "tangential_load",
+            format!("Q/μP {q}"),
+            Setup {
+                friction: 0.5,
+                poisson: 0.5,
+                ..Setup::sphere(100.0, 0.01)
+            },
+            Some(mindlin(q)),
+            cell_mm,
+        );
+    }
+    for cells in [0.5f64, 1.0, 2.0, 4.0, 8.0, 16.0] {
+        let cell = 1.0 / cells;
+        push(
+            "contact_cells",
+            format!("a/cell {cells}"),
+            Setup {
+                box_mm: (9.0 * cell).max(6.4),
+                ..Setup::sphere(100.0, 0.01)
+            },
+            Some(case(Check::Hertz)),
+            cell,
+        );
+    }
+    points
+}
+
+/// Runs the accuracy study and the stability map; `progress` gets one line per point.
+pub fn run_study(options: &StudyOptions, progress: &mut dyn FnMut(&str)) -> Study {
+    let mut points = Vec::new();
+    for scene in analytic_scenes() {
+        for &cells in &options.contact_cells {
+            let cell_mm = 1.0 / cells;
+            for rung in SolverKind::ALL {
+                let trial = || {
+                    let s = scene.setup.scene(rung, cell_mm)?;
+                    analytic_trial(&s, &scene.case)
+                };
+                let measurement = measure(options.tolerance, options.repeats, &trial);
+                let cells_per_side = scene
+                    .setup
+                    .scene(rung, cell_mm)
+                    .map(|s| s.grid().nx)
+                    .unwrap_or(0);
+                progress(&format!(
+                    "{:<18} {:<9} a/cell {:>4} {:>8.2} ms/frame  {}",
+                    scene.name,
+                    rung.name(),
+                    cells,
+                    measurement.ms_per_frame,
+                    measurement
+                        .rel_error
+                        .map_or(measurement.reason.clone(), |e| format!("{:+.3e}", e))
+                ));
+                points.push(StudyPoint {
+                    scene: scene.name.clone(),
+                    rung,
+                    a_over_cell: cells,
+                    cell_mm,
+                    cells_per_side,
+                    a_over_h: scene.a_over_h,
+                    in_table: scene.in_table,
+                    measurement,
+                });
+            }
+        }
+    }
+
+    let mut stability = Vec::new();
+    for point in stability_sweeps(options.stability_cell_mm) {
+        let reference = reference_name(point.case.as_ref());
+        // The box edge has no closed form: its reference is the half-space rung on a grid of
+        // half the cell size.
+        let fine = match point.case {
+            None => point
+                .setup
+                .scene(SolverKind::Halfspace, point.cell_mm / 2.0)
+                .and_then(|s| normal_force_n(&s).map_err(|e| e.to_string())),
+            Some(_) => Ok((f64::NAN, 0)),
+        };
+        for rung in SolverKind::ALL {
+            let trial = || {
+                let s = point.setup.scene(rung, point.cell_mm)?;
+                match &point.case {
+                    Some(case) => analytic_trial(&s, case),
+                    None => {
+                        let (reference_n, _) =
+                            fine.clone().map_err(|e| format!("reference failed: {e}"))?;
+                        let (simulated_n, frames) =
+                            normal_force_n(&s).map_err(|e| e.to_string())?;
+                        Ok(Sample {
+                            reference_n,
+                            simulated_n,
+                            scale_n: reference_n.abs(),
+                            frames,
+                        })
+                    }
+                }
+            };
+            let measurement = measure(options.tolerance, 1, &trial);
+            progress(&format!(
+                "stability {:<20} {:<10} {:<9} {}",
+                point.sweep,
+                point.label,
+                rung.name(),
+                if measurement.outcome == Outcome::Ok {
+                    "ok".to_string()
+                } else {
+                    measurement.reason.clone()
+                }
+            ));
+            stability.push(StabilityPoint {
+                sweep: point.sweep,
+                label: point.label.clone(),
+                rung,
+                cell_mm: point.cell_mm,
+                reference,
+                measurement,
+            });
+        }
+    }
+
+    let table = solver_table(&points);
+    Study {
+        options: options.clone(),
+        points,
+        stability,
+        table,
+    }
+}
+
+/// The solver table from the accuracy study's `in_table` points: at each rung and resolution,
+/// a row for the thick gel (worst over the half-space scenes) and one per bonded layer (worst of
+/// the half-space scenes and that layer). Failed points count as an infinite error.
+pub fn solver_table(points: &[StudyPoint]) -> SolverTable {
+    let error = |p: &StudyPoint| {
+        p.measurement
+            .rel_error
+            .filter(|_| matches!(p.measurement.outcome, Outcome::Ok | Outcome::OverTolerance))
+            .map_or(f64::INFINITY, f64::abs)
+    };
+    let worst = |pts: &[&StudyPoint]| {
+        pts.iter().fold((0.0f64, 0.0f64), |(e, ms), p| {
+            (e.max(error(p)), ms.max(p.measurement.ms_per_frame))
+        })
+    };
+    let mut resolutions: Vec<f64> = points.iter().map(|p| p.a_over_cell).collect();
+    resolutions.sort_by(f64::total_cmp);
+    resolutions.dedup();
+    let mut layers: Vec<f64> = points
+        .iter()
+        .filter(|p| p.in_table && p.a_over_h > 1.0 / THICK_GEL_MM)
+        .map(|p| p.a_over_h)
+        .collect();
+    layers.sort_by(f64::total_cmp);
+    layers.dedup();
+    let mut rows = Vec::new();
+    for rung in SolverKind::ALL {
+        for &cells in &resolutions {
+            let at: Vec<&StudyPoint> = points
+                .iter()
+                .filter(|p| p.in_table && p.rung == rung && p.a_over_cell == cells)
+                .collect();
+            let thick: Vec<&StudyPoint> = at
+                .iter()
+                .copied()
+                .filter(|p| p.a_over_h <= 1.0 / THICK_GEL_MM)
+                .collect();
+            if thick.is_empty() {
+                continue;
+            }
+            let (base_error, base_ms) = worst(&thick);
+            rows.push(TableRow {
+                rung,
+                a_over_cell: cells,
+                a_over_h: 1.0 / THICK_GEL_MM,
+                rel_error: base_error,
+                ms_per_frame: base_ms,
+            });
+            for &chi in &layers {
+                let layer: Vec<&StudyPoint> =
+                    at.iter().copied().filter(|p| p.a_over_h == chi).collect();
+                let (e, ms) = worst(&layer);
+                rows.push(TableRow {
+                    rung,
+                    a_over_cell: cells,
+                    a_over_h: chi,
+                    rel_error: base_error.max(e),
+                    ms_per_frame: base_ms.max(ms),
+                });
+            }
+        }
+    }
+    SolverTable { rows }
+}
+
+fn opt(v: Option<f64>) -> String {
+    v.map_or(String::new(), |v| format!("{v:e}"))
+}
+
+fn csv_text(reason: &str) -> String {
+    format!("\"{}\"", reason.replace('"', "'"))
+}
+
+impl Study {
+    /// `study.csv`: one row per accuracy point.
+    pub fn points_csv(&self) -> String {
+        let mut out = String::from(
+            "scene,rung,a_over_cell,cell_mm,cells_per_side,a_over_h,in_table,frames,\
+             ms_per_frame,reference_n,simulated_n,rel_error,outcome,reason\n",
+        );
+        for p in &self.points {
+            let m = &p.measurement;
+            out.push_str(&format!(
+                "{},{},{},{},{},{},{},{},{:.4},{},{},{},{},{}\n",
+                p.scene,
+                p.rung.name(),
+                p.a_over_cell,
+                p.cell_mm,
+                p.cells_per_side,
+                p.a_over_h,
+                p.in_table,
+                m.frames,
+                m.ms_per_frame,
+                opt(m.reference_n),
+                opt(m.simulated_n),
+                opt(m.rel_error),
+                m.outcome.name(),
+                csv_text(&m.reason)
+            ));
+        }
+        out
+    }
+
+    /// `stability.csv`: one row per stability point.
+    pub fn stability_csv(&self) -> String {
+        let mut out = String::from(
+            "sweep,value,rung,cell_mm,reference,reference_n,simulated_n,rel_error,outcome,reason\n",
+        );
+        for p in &self.stability {
+            let m = &p.measurement;
+            out.push_str(&format!(
+                "{},{},{},{},{},{},{},{},{},{}\n",
+                p.sweep,
+                csv_text(&p.label),
+                p.rung.name(),
+                p.cell_mm,
+                csv_text(p.reference),
+                opt(m.reference_n),
+                opt(m.simulated_n),
+                opt(m.rel_error),
+                m.outcome.name(),
+                csv_text(&m.reason)
+            ));
+        }
+        out
+    }
+}

@@ -1,0 +1,272 @@
+//! `solver = "auto"`: the cheapest rung and mechanics grid predicted to meet a relative force
+//! tolerance, from the table of measured errors and costs that `sparsh study` writes
+//! (`assets/solver_table.csv`, compiled in).
+//!
+//! A prediction needs two numbers of the scene: the contact radius a in cells of the candidate
+//! grid, and a over the gel thickness h. The table holds, per rung, the worst relative force error
+//! the study measured at each (a/cell, a/h) it ran; a query takes the nearest studied point on the
+//! safe side (the next coarser a/cell, the next thinner layer), so the prediction is the error of
+//! a harder case. Queries outside the studied range have no prediction and are not candidates.
+
+use std::sync::OnceLock;
+
+use crate::{
+    FrameTarget, GapField, Gel, Grid, Indenter, IndenterSpec, SensorConfig, ShapeKind, SolverKind,
+};
+
+/// The table the study wrote, compiled into the crate.
+pub const SOLVER_TABLE_CSV: &str = include_str!("../../../assets/solver_table.csv");
+
+/// Tolerance of `solver = "auto"` when the scene gives none.
+pub const DEFAULT_TOLERANCE: f64 = 0.02;
+
+/// One studied point: a rung on a grid of `a_over_cell` cells per contact radius, on a gel with
+/// contact radius over thickness `a_over_h`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TableRow {
+    /// The rung.
+    pub rung: SolverKind,
+    /// Contact radius in cells.
+    pub a_over_cell: f64,
+    /// Contact radius over gel thickness.
+    pub a_over_h: f64,
+    /// Worst |relative force error| measured there (∞ where a case failed).
+    pub rel_error: f64,
+    /// Worst time per frame measured there (ms).
+    pub ms_per_frame: f64,
+}
+
+/// The table of studied points.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct SolverTable {
+    /// Rows, in any order.
+    pub rows: Vec<TableRow>,
+}
+
+const HEADER: &str = "rung,a_over_cell,a_over_h,rel_error,ms_per_frame";
+
+impl SolverTable {
+    /// The compiled-in table.
+    pub fn builtin() -> &'static SolverTable {
+        static TABLE: OnceLock<SolverTable> = OnceLock::new();
+        TABLE.get_or_init(|| {
+            SolverTable::parse(SOLVER_TABLE_CSV)
+                .unwrap_or_else(|e| panic!("assets/solver_table.csv is corrupt: {e}"))
+        })
+    }
+
+    /// Parses the CSV text written by [`SolverTable::to_csv`]; `#` lines are comments.
+    pub fn parse(text: &str) -> Result<SolverTable, String> {
+        let mut lines = text
+            .lines()
+            .enumerate()
+            .filter(|(_, l)| !l.trim().is_empty() && !l.starts_with('#'));
+        match lines.next() {
+            Some((_, h)) if h.trim() == HEADER => {}
+            _ => return Err(format!("first row must be `{HEADER}`")),
+        }
+        let rows = lines
+            .map(|(n, line)| {
+                let f: Vec<&str> = line.split(',').map(str::trim).collect();
+                let bad = |what: &str| format!("line {}: {what}", n + 1);
+                if f.len() != 5 {
+                    return Err(bad("needs 5 fields"));
+                }
+                let num = |s: &str| {
+                    s.parse::<f64>()
+                        .map_err(|_| bad(&format!("`{s}` is not a number")))
+                };
+                let row = TableRow {
+                    rung: f[0].parse().map_err(|e: String| bad(&e))?,
+                    a_over_cell: num(f[1])?,
+                    a_over_h: num(f[2])?,
+                    rel_error: num(f[3])?,
+                    ms_per_frame: num(f[4])?,
+                };
+                if !(row.a_over_cell > 0.0 && row.a_over_h >= 0.0 && row.rel_error >= 0.0) {
+                    return Err(bad("a_over_cell must be > 0, a_over_h and rel_error ≥ 0"));
+                }
+                Ok(row)
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        Ok(SolverTable { rows })
+    }
+
+    /// CSV text, one row per studied point.
+    pub fn to_csv(&self) -> String {
+        let mut out = String::from(
+            "# Written by `sparsh study`: worst |relative force error| and worst ms per frame of \
+             each rung at each studied contact radius in cells (a_over_cell) and contact radius \
+             over gel thickness (a_over_h). Read by solver = \"auto\".\n",
+        );
+        out.push_str(HEADER);
+        out.push('\n');
+        for r in &self.rows {
+            out.push_str(&format!(
+                "{},{},{},{:e},{:e}\n",
+                r.rung.name(),
+                r.a_over_cell,
+                r.a_over_h,
+                r.rel_error,
+                r.ms_per_frame
+            ));
+        }
+        out
+    }
+
+    /// The studied point that bounds (`rung`, `a_over_cell`, `a_over_h`) from the hard side: the
+    /// largest studied a/cell not above the query, then the smallest studied a/h not below it.
+    pub fn predict(&self, rung: SolverKind, a_over_cell: f64, a_over_h: f64) -> Option<TableRow> {
+        let rows = self.rows.iter().filter(|r| r.rung == rung);
+        let cell = rows
+            .clone()
+            .map(|r| r.a_over_cell)
+            .filter(|&c| c <= a_over_cell * (1.0 + 1e-9))
+            .fold(None, |m: Option<f64>, c| Some(m.map_or(c, |m| m.max(c))))?;
+        rows.filter(|r| r.a_over_cell == cell && r.a_over_h >= a_over_h * (1.0 - 1e-9))
+            .min_by(|a, b| a.a_over_h.total_cmp(&b.a_over_h))
+            .copied()
+    }
+}
+
+/// What `solver = "auto"` chose, and why.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct AutoChoice {
+    /// The rung.
+    pub solver: SolverKind,
+    /// Pixels per mechanics cell.
+    pub mechanics_stride: usize,
+    /// Requested relative force tolerance.
+    pub tolerance: f64,
+    /// Estimated contact radius (mm).
+    pub contact_radius_mm: f64,
+    /// Estimated contact radius over gel thickness.
+    pub a_over_h: f64,
+    /// Predicted |relative force error| (the table's bounding point).
+    pub predicted_rel_error: f64,
+    /// The table's time per frame at that point (ms).
+    pub predicted_ms_per_frame: f64,
+}
+
+impl AutoChoice {
+    /// The prediction meets the tolerance (false when no candidate did and the most accurate
+    /// one was taken instead).
+    pub fn meets_tolerance(&self) -> bool {
+        self.predicted_rel_error <= self.tolerance
+    }
+}
+
+/// Every (rung, stride) the table can predict for a contact of `contact_radius_mm` on `sensor`'s
+/// image and `gel`: strides divide the image size.
+pub fn candidates(
+    table: &SolverTable,
+    sensor: &SensorConfig,
+    gel: &Gel,
+    contact_radius_mm: f64,
+    tolerance: f64,
+) -> Vec<AutoChoice> {
+    let a_over_h = contact_radius_mm / gel.thickness_mm;
+    let mut out = Vec::new();
+    for solver in SolverKind::ALL {
+        for stride in 1..=sensor.width_px.min(sensor.height_px) {
+            if !(sensor.width_px.is_multiple_of(stride) && sensor.height_px.is_multiple_of(stride))
+            {
+                continue;
+            }
+            let a_over_cell = contact_radius_mm / (sensor.mm_per_px * stride as f64);
+            if let Some(row) = table.predict(solver, a_over_cell, a_over_h) {
+                out.push(AutoChoice {
+                    solver,
+                    mechanics_stride: stride,
+                    tolerance,
+                    contact_radius_mm,
+                    a_over_h,
+                    predicted_rel_error: row.rel_error,
+                    predicted_ms_per_frame: row.ms_per_frame,
+                });
+            }
+        }
+    }
+    out
+}
+
+/// The cheapest candidate predicted to meet its tolerance (ties: the coarser grid); when none
+/// does, the most accurate one.
+pub fn choose(candidates: &[AutoChoice]) -> Option<AutoChoice> {
+    let cheapest = candidates
+        .iter()
+        .filter(|c| c.meets_tolerance())
+        .min_by(|a, b| {
+            a.predicted_ms_per_frame
+                .total_cmp(&b.predicted_ms_per_frame)
+                .then(b.mechanics_stride.cmp(&a.mechanics_stride))
+        });
+    cheapest.copied().or_else(|| most_accurate(candidates))
+}
+
+/// The candidate with the smallest predicted error (ties: the cheaper).
+pub fn most_accurate(candidates: &[AutoChoice]) -> Option<AutoChoice> {
+    candidates
+        .iter()
+        .min_by(|a, b| {
+            a.predicted_rel_error
+                .total_cmp(&b.predicted_rel_error)
+                .then(
+                    a.predicted_ms_per_frame
+                        .total_cmp(&b.predicted_ms_per_frame),
+                )
+        })
+        .copied()
+}
+
+/// A lower estimate of the largest contact radius (mm) along the frames: (2/π) times the radius
+/// of the rigid penetration's footprint at the deepest-reaching frame (the ratio of Sneddon's
+/// cone; Hertz gives 1/√2 and a flat punch 1, so the estimate errs towards fewer cells). Under
+/// force control, a sphere's Hertz radius at the largest load.
+pub fn contact_radius_estimate_mm(
+    spec: &IndenterSpec,
+    indenter: &Indenter,
+    frames: &[FrameTarget],
+    sensor: &SensorConfig,
+    gel: &Gel,
+) -> Result<f64, String> {
+    let max_force = frames
+        .iter()
+        .filter_map(|f| f.normal_force_n)
+        .fold(None, |m: Option<f64>, f| Some(m.map_or(f, |m| m.max(f))));
+    if let Some(force_n) = max_force {
+        return match (spec.shape, spec.radius_mm) {
+            (ShapeKind::Sphere, Some(r)) => {
+                Ok((3.0 * force_n * 1e3 * r / (4.0 * gel.effective_modulus_kpa())).cbrt())
+            }
+            _ => Err(
+                "normal_force_n keyframes need a sphere indenter under solver = \"auto\" \
+                      (name a solver instead)"
+                    .into(),
+            ),
+        };
+    }
+    let image = sensor.grid();
+    let coarse = Grid {
+        nx: image.nx.div_ceil(4),
+        ny: image.ny.div_ceil(4),
+        cell_mm: image.cell_mm * 4.0,
+    };
+    let touching = |gap: &GapField| gap.gap_mm.iter().filter(|&&g| g < 0.0).count();
+    let deepest = frames
+        .iter()
+        .map(|f| (touching(&GapField::cast(indenter, &f.pose, coarse)), f))
+        .max_by_key(|(n, _)| *n);
+    let cells = deepest
+        .map(|(_, f)| touching(&GapField::cast(indenter, &f.pose, image)))
+        .unwrap_or(0);
+    if cells == 0 {
+        return Err(
+            "the indenter never touches the gel in view, so there is nothing to \
+                    choose a solver for"
+                .into(),
+        );
+    }
+    let footprint_mm = (cells as f64 * image.cell_area_mm2() / std::f64::consts::PI).sqrt();
+    Ok(footprint_mm * 2.0 / std::f64::consts::PI)
+}

@@ -1,0 +1,104 @@
+//! The solver table behind `solver = "auto"`: parsing, safe-side lookup and the choice rule, on a
+//! hand-written table.
+
+use sparsh_scene::SolverKind;
+use sparsh_scene::auto::{AutoChoice, SolverTable, choose, most_accurate};
+
+const TABLE: &str = "# hand-written
+rung,a_over_cell,a_over_h,rel_error,ms_per_frame
+halfspace,5,0.002,0.03,1
+halfspace,10,0.002,0.01,4
+halfspace,10,0.5,0.4,4
+layered,5,0.002,0.03,2
+layered,5,0.5,0.05,2
+layered,10,0.002,0.01,8
+layered,10,0.5,0.012,8
+geometric,5,0.002,inf,0.1
+";
+
+#[test]
+fn table_parses_and_round_trips() {
+    let table = SolverTable::parse(TABLE).unwrap();
+    assert_eq!(table.rows.len(), 8);
+    assert!(table.rows[7].rel_error.is_infinite());
+    assert_eq!(SolverTable::parse(&table.to_csv()).unwrap(), table);
+    for (bad, why) in [
+        ("rung,a\n", "first row"),
+        (
+            "rung,a_over_cell,a_over_h,rel_error,ms_per_frame\nfem,1,1,1,1\n",
+            "unknown solver",
+        ),
+        (
+            "rung,a_over_cell,a_over_h,rel_error,ms_per_frame\nlayered,1,1,x,1\n",
+            "not a number",
+        ),
+        (
+            "rung,a_over_cell,a_over_h,rel_error,ms_per_frame\nlayered,0,1,1,1\n",
+            "must be > 0",
+        ),
+        (
+            "rung,a_over_cell,a_over_h,rel_error,ms_per_frame\nlayered,1,1\n",
+            "5 fields",
+        ),
+    ] {
+        let err = SolverTable::parse(bad).unwrap_err();
+        assert!(err.contains(why), "{err}");
+    }
+    // The compiled-in table parses and covers every rung.
+    let builtin = SolverTable::builtin();
+    for rung in SolverKind::ALL {
+        assert!(builtin.rows.iter().any(|r| r.rung == rung), "{rung:?}");
+    }
+}
+
+#[test]
+fn lookup_takes_the_hard_side() {
+    let table = SolverTable::parse(TABLE).unwrap();
+    // 7 cells per radius is bounded by the 5-cell row, a/h = 0.1 by the 0.5 layer.
+    let row = table.predict(SolverKind::Layered, 7.0, 0.1).unwrap();
+    assert_eq!((row.a_over_cell, row.a_over_h), (5.0, 0.5));
+    let row = table.predict(SolverKind::Layered, 12.0, 0.1).unwrap();
+    assert_eq!((row.a_over_cell, row.a_over_h), (10.0, 0.5));
+    // Coarser than studied, or thinner than studied: no prediction.
+    assert!(table.predict(SolverKind::Layered, 4.0, 0.001).is_none());
+    assert!(table.predict(SolverKind::Layered, 12.0, 0.7).is_none());
+}
+
+fn choice(solver: SolverKind, stride: usize, error: f64, ms: f64) -> AutoChoice {
+    AutoChoice {
+        solver,
+        mechanics_stride: stride,
+        tolerance: 0.02,
+        contact_radius_mm: 1.0,
+        a_over_h: 0.1,
+        predicted_rel_error: error,
+        predicted_ms_per_frame: ms,
+    }
+}
+
+#[test]
+fn choice_is_the_cheapest_that_meets_the_tolerance() {
+    let candidates = [
+        choice(SolverKind::Halfspace, 4, 0.4, 1.0),
+        choice(SolverKind::Layered, 4, 0.015, 2.0),
+        choice(SolverKind::Layered, 2, 0.015, 2.0),
+        choice(SolverKind::Layered, 1, 0.005, 8.0),
+    ];
+    let c = choose(&candidates).unwrap();
+    assert_eq!((c.solver, c.mechanics_stride), (SolverKind::Layered, 4));
+    assert!(c.meets_tolerance());
+    let best = most_accurate(&candidates).unwrap();
+    assert_eq!(best.mechanics_stride, 1);
+    // Nothing meets 0.1 %: the most accurate is taken, and says so.
+    let strict: Vec<AutoChoice> = candidates
+        .iter()
+        .map(|c| AutoChoice {
+            tolerance: 0.001,
+            ..*c
+        })
+        .collect();
+    let c = choose(&strict).unwrap();
+    assert_eq!(c.mechanics_stride, 1);
+    assert!(!c.meets_tolerance());
+    assert!(choose(&[]).is_none());
+}
