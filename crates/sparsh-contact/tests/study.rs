@@ -74,8 +74,8 @@ fn quick_study_is_complete_and_physical() {
             values
         );
     }
-    for p in study.stability.iter().map(|p| (&p.measurement, p)) {
-        let (m, p) = p;
+    for p in &study.stability {
+        let m = &p.measurement;
         assert!(
             !matches!(m.outcome, Outcome::NonFinite | Outcome::Panic),
             "{} {} {:?}: {}",

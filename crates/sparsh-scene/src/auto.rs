@@ -122,7 +122,7 @@ impl SolverTable {
             .clone()
             .map(|r| r.a_over_cell)
             .filter(|&c| c <= a_over_cell * (1.0 + 1e-9))
-            .fold(None, |m: Option<f64>, c| Some(m.map_or(c, |m| m.max(c))))?;
+            .reduce(f64::max)?;
         rows.filter(|r| r.a_over_cell == cell && r.a_over_h >= a_over_h * (1.0 - 1e-9))
             .min_by(|a, b| a.a_over_h.total_cmp(&b.a_over_h))
             .copied()
@@ -233,7 +233,7 @@ pub fn contact_radius_estimate_mm(
     let max_force = frames
         .iter()
         .filter_map(|f| f.normal_force_n)
-        .fold(None, |m: Option<f64>, f| Some(m.map_or(f, |m| m.max(f))));
+        .reduce(f64::max);
     if let Some(force_n) = max_force {
         return match (spec.shape, spec.radius_mm) {
             (ShapeKind::Sphere, Some(r)) => {
