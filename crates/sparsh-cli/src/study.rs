@@ -141,6 +141,9 @@ fn rung_color(rung: SolverKind) -> RGBColor {
 /// Errors are drawn from here up on the log axis (a point exactly on the answer).
 const ERROR_FLOOR: f64 = 1e-6;
 
+/// A point of a rung's line: (mean ms per frame, worst |relative force error|, a/cell).
+type LinePoint = (f64, f64, f64);
+
 /// Worst |relative force error| over the kept scenes against mean time per frame, per rung and
 /// resolution; faint markers for each scene; the Pareto front over the rung lines.
 struct ErrorVsTime<'a> {
@@ -152,7 +155,7 @@ struct ErrorVsTime<'a> {
 impl ErrorVsTime<'_> {
     /// Per rung: (mean ms per frame, worst error, a/cell) at each resolution where every kept
     /// scene was solved.
-    fn lines(&self) -> Vec<(SolverKind, Vec<(f64, f64, f64)>)> {
+    fn lines(&self) -> Vec<(SolverKind, Vec<LinePoint>)> {
         SolverKind::ALL
             .iter()
             .map(|&rung| {

@@ -94,7 +94,10 @@ fn check_parity(label: &str, cpu: Renderer, ctx: &GpuContext, surfaces: [Deforma
             .flat_map(|(a, b)| (0..3).map(move |ch| (a[ch] - b[ch]).abs()))
             .fold(0.0f32, f32::max);
         eprintln!("{label} surface {k}: before rounding, max abs difference {linear:.2e}");
-        assert!(linear < 0.1, "{label} surface {k}: linear values differ by {linear}");
+        assert!(
+            linear < 0.1,
+            "{label} surface {k}: linear values differ by {linear}"
+        );
         let (contrast, _) = difference(&want, &background);
         assert!(
             contrast >= 20,
