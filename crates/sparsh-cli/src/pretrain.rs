@@ -32,7 +32,10 @@ pub fn pretrain(
     let mut probe_msg = String::new();
     let summary = run(&recipe, &opts, &mut |r| {
         if let Some(p) = r.probe {
-            probe_msg = format!(" probe {:.1} mN (mean {:.1})", p.rmse_mn, p.baseline_mn);
+            probe_msg = format!(
+                " probe {:.1} mN (mean {:.1}, feature std {:.3})",
+                p.rmse_mn, p.baseline_mn, p.feature_std
+            );
         }
         if r.loss.is_finite() {
             bar.set_position(r.step as u64 + 1);

@@ -49,22 +49,34 @@ pub fn write_frames_pickle(path: &Path, frames: &[RgbImage]) -> Result<(), DataE
     write_pickle(path, &Value::List(list))
 }
 
-/// Reads a pickle of encoded frames: a list of byte strings.
+/// Reads a pickle of encoded frames: a list (or tuple) of byte strings, or a dictionary whose
+/// first non-empty list value (keys in sorted order) is one, as the official datasets store them.
 pub fn read_frames_pickle(path: &Path) -> Result<Vec<Vec<u8>>, DataError> {
-    let bad = |message: &str| DataError::Format {
-        path: path.to_path_buf(),
-        message: message.into(),
-    };
-    match read_pickle(path)? {
-        Value::List(items) => items
+    let as_bytes = |items: Vec<Value>| {
+        items
             .into_iter()
             .map(|v| match v {
-                Value::Bytes(b) => Ok(b),
-                _ => Err(bad("frame list holds something other than bytes")),
+                Value::Bytes(b) => Some(b),
+                _ => None,
             })
-            .collect(),
-        _ => Err(bad("not a list of encoded frames")),
-    }
+            .collect::<Option<Vec<_>>>()
+    };
+    let frames = match read_pickle(path)? {
+        Value::List(items) | Value::Tuple(items) => as_bytes(items),
+        Value::Dict(map) => {
+            let mut entries: Vec<(HashableValue, Value)> = map.into_iter().collect();
+            entries.sort_by(|a, b| format!("{:?}", a.0).cmp(&format!("{:?}", b.0)));
+            entries.into_iter().find_map(|(_, v)| match v {
+                Value::List(items) | Value::Tuple(items) if !items.is_empty() => as_bytes(items),
+                _ => None,
+            })
+        }
+        _ => None,
+    };
+    frames.ok_or_else(|| DataError::Format {
+        path: path.to_path_buf(),
+        message: "expected a list of encoded frames (bytes)".into(),
+    })
 }
 
 /// Writes `dataset_slip_forces.pkl`.

@@ -88,3 +88,46 @@ print(len(f), d["in_contact"], t["indexes"], t["forces"][1], t["slip_label"])
         "3 [False, True, True] [0, 1, 2] [0.1, -0.2, 1.5] [0, 0, 1]"
     );
 }
+
+#[test]
+fn frames_in_a_dictionary_or_tuple_are_found_and_other_pickles_are_refused() {
+    use serde_pickle::{HashableValue, SerOptions, Value};
+    let dir = tempfile::tempdir().unwrap();
+    let bytes = |k: u8| Value::Bytes(vec![k; 4]);
+    let write = |name: &str, v: Value| {
+        let path = dir.path().join(name);
+        std::fs::write(
+            &path,
+            serde_pickle::value_to_vec(&v, SerOptions::new()).unwrap(),
+        )
+        .unwrap();
+        path
+    };
+    // a dictionary: the first non-empty list under the sorted keys
+    let dict = Value::Dict(
+        [
+            (
+                HashableValue::String("b_frames".into()),
+                Value::List(vec![bytes(1), bytes(2)]),
+            ),
+            (HashableValue::String("a_empty".into()), Value::List(vec![])),
+            (
+                HashableValue::String("c_other".into()),
+                Value::List(vec![bytes(9)]),
+            ),
+        ]
+        .into_iter()
+        .collect(),
+    );
+    let got = read_frames_pickle(&write("dict.pkl", dict)).unwrap();
+    assert_eq!(got, vec![vec![1; 4], vec![2; 4]]);
+    let got = read_frames_pickle(&write("tuple.pkl", Value::Tuple(vec![bytes(3)]))).unwrap();
+    assert_eq!(got, vec![vec![3; 4]]);
+    let err = read_frames_pickle(&write("ints.pkl", Value::List(vec![Value::I64(1)])))
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("ints.pkl") && err.contains("encoded frames"),
+        "{err}"
+    );
+}

@@ -3,7 +3,8 @@
 The same ViT as benches/train_step.rs: 6×96×96 input, patch 8 (144 tokens), width 192, 6 blocks,
 3 heads, MLP ratio 4, a linear pixel head, MSE, Adam, batch 32, on the CPU.
     pip install torch numpy && python3 benches/torch_step.py [threads]
-Prints seconds per step (median of 10 after 3 warm-up steps) and images/s.
+Prints seconds per step (median of 10 after 3 warm-up steps), images/s and the mean CPU time per
+step (steadier than wall time on a shared machine).
 """
 import sys
 import time
@@ -60,14 +61,20 @@ opt = torch.optim.Adam(model.parameters(), lr=1e-4)
 x = torch.rand(B, C, H, H)
 target = patchify(x)
 times = []
+cpu = 0.0
 for i in range(13):
     t0 = time.perf_counter()
+    c0 = time.process_time()
     loss = ((model(x) - target) ** 2).mean()
     opt.zero_grad()
     loss.backward()
     opt.step()
     if i >= 3:
         times.append(time.perf_counter() - t0)
+        cpu += time.process_time() - c0
 times.sort()
 step = times[len(times) // 2]
-print(f"torch {torch.__version__} threads {threads}: {step:.3f} s/step, {B / step:.1f} images/s")
+print(
+    f"torch {torch.__version__} threads {threads}: {step:.3f} s/step, {B / step:.1f} images/s, "
+    f"{cpu / 10:.3f} CPU s/step"
+)

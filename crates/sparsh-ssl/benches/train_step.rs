@@ -1,7 +1,8 @@
 //! Training-step benchmark: the reference ViT of `benches/torch_step.py` (6×96×96, patch 8,
 //! width 192, 6 blocks, linear pixel head, MSE, Adam, batch 32), then images/s of one step of each
-//! CPU recipe's objective. `cargo bench -p sparsh-ssl` (release). Prints medians of 5 steps after
-//! 2 warm-up steps.
+//! CPU recipe's objective. `cargo bench -p sparsh-ssl [-- NAME …]` (release; names `reference`,
+//! `mae`, `dino`, `ijepa`, `vjepa`). Prints medians of 5 steps after 2 warm-up steps, and for the
+//! reference the mean CPU time per step.
 
 use std::path::Path;
 use std::time::Instant;
@@ -22,12 +23,29 @@ struct Reference {
     head: Linear,
 }
 
+/// CPU seconds used by this process so far (user + system, from `/proc/self/stat`; 0 where
+/// unavailable): on a shared machine CPU time per step is steadier than wall time.
+fn cpu_seconds() -> f64 {
+    let stat = std::fs::read_to_string("/proc/self/stat").unwrap_or_default();
+    let fields: Vec<&str> = stat
+        .rsplit_once(')')
+        .map_or(Vec::new(), |(_, rest)| rest.split_whitespace().collect());
+    // after the command name: state is field 3, utime 14 and stime 15 (clock ticks of 10 ms)
+    let tick = |i: usize| {
+        fields
+            .get(i - 3)
+            .and_then(|v| v.parse::<f64>().ok())
+            .unwrap_or(0.0)
+    };
+    (tick(14) + tick(15)) / 100.0
+}
+
 fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);
     v[v.len() / 2]
 }
 
-fn reference(device: &Device) -> f64 {
+fn reference(device: &Device) -> (f64, f64) {
     let cfg = VitConfig::new([96, 96], 8).with_depth(6);
     let mut model = Reference {
         vit: cfg.init(device),
@@ -41,8 +59,10 @@ fn reference(device: &Device) -> f64 {
     );
     let target = patchify(x.clone(), 8, 1);
     let mut times = Vec::new();
+    let mut cpu = 0.0;
     for i in 0..7 {
         let t0 = Instant::now();
+        let c0 = cpu_seconds();
         let pred = model
             .head
             .forward(model.vit.forward(x.clone(), None).patches);
@@ -52,9 +72,10 @@ fn reference(device: &Device) -> f64 {
         model = optim.step(1e-4, model, grads);
         if i >= 2 {
             times.push(t0.elapsed().as_secs_f64());
+            cpu += cpu_seconds() - c0;
         }
     }
-    median(times)
+    (median(times), cpu / 5.0)
 }
 
 fn objective(name: &str, device: &Device) -> (f64, usize) {
@@ -94,13 +115,24 @@ fn objective(name: &str, device: &Device) -> (f64, usize) {
 }
 
 fn main() {
+    // `cargo bench -p sparsh-ssl -- reference mae` runs only the named benchmarks
+    let only: Vec<String> = std::env::args()
+        .skip(1)
+        .filter(|a| !a.starts_with("--"))
+        .collect();
+    let wanted = |name: &str| only.is_empty() || only.iter().any(|o| o == name);
     let device = Device::flex().autodiff();
-    let s = reference(&device);
-    println!(
-        "reference ViT (burn flex): {s:.3} s/step, {:.1} images/s",
-        32.0 / s
-    );
-    for name in ["mae", "dino", "ijepa", "vjepa"] {
+    if wanted("reference") {
+        let (s, cpu) = reference(&device);
+        println!(
+            "reference ViT (burn flex): {s:.3} s/step, {:.1} images/s, {cpu:.3} CPU s/step",
+            32.0 / s
+        );
+    }
+    for name in ["mae", "dino", "ijepa", "vjepa"]
+        .into_iter()
+        .filter(|n| wanted(n))
+    {
         let (s, b) = objective(name, &device);
         println!(
             "{name}_tiny_cpu: {s:.3} s/step at batch {b}, {:.1} images/s",

@@ -208,43 +208,16 @@ impl Dataset {
     }
 }
 
-/// Frames of a pickle: the top-level list, or the first list value of a top-level dictionary.
-fn pickle_frames(v: serde_pickle::Value) -> Option<Vec<Vec<u8>>> {
-    use serde_pickle::{HashableValue, Value};
-    let as_bytes = |items: Vec<Value>| {
-        items
-            .into_iter()
-            .map(|x| match x {
-                Value::Bytes(b) => Some(b),
-                _ => None,
-            })
-            .collect::<Option<Vec<_>>>()
-    };
-    match v {
-        Value::List(items) | Value::Tuple(items) => as_bytes(items),
-        Value::Dict(map) => {
-            let mut entries: Vec<(HashableValue, Value)> = map.into_iter().collect();
-            entries.sort_by(|a, b| format!("{:?}", a.0).cmp(&format!("{:?}", b.0)));
-            entries.into_iter().find_map(|(_, v)| match v {
-                Value::List(items) | Value::Tuple(items) if !items.is_empty() => as_bytes(items),
-                _ => None,
-            })
-        }
-        _ => None,
-    }
-}
-
 /// Loads one official Sparsh pickle (a list of encoded frames) as one sequence.
 pub fn load_pickle(path: &Path, size: [usize; 2]) -> Result<Sequence, Error> {
-    let file = std::fs::File::open(path).map_err(|e| Error::file(path, e))?;
-    let value = serde_pickle::value_from_reader(
-        std::io::BufReader::new(file),
-        serde_pickle::DeOptions::new().replace_unresolved_globals(),
-    )
-    .map_err(|e| Error::file(path, format!("not a readable pickle: {e}")))?;
-    let frames = pickle_frames(value)
-        .filter(|f| !f.is_empty())
-        .ok_or_else(|| Error::file(path, "expected a list of encoded frames (bytes)"))?;
+    let frames = sparsh_data::sparsh_pkl::read_frames_pickle(path).map_err(|e| match e {
+        sparsh_data::DataError::Format { message, .. } => Error::file(path, message),
+        sparsh_data::DataError::Io { source, .. } => Error::file(path, source),
+        other => Error::file(path, other),
+    })?;
+    if frames.is_empty() {
+        return Err(Error::file(path, "the pickle holds no frames"));
+    }
     let bg = match background_beside(path) {
         Some(p) => read_image(&p)?,
         None => decode(&frames[0], path)?,

@@ -32,14 +32,59 @@ pub struct DinoConfig {
     /// Momentum of the teacher-output centre.
     #[config(default = 0.9)]
     pub center_momentum: f64,
+    /// Batch normalization after the two hidden layers of the head (DINO's `use_bn_in_head`).
+    #[config(default = false)]
+    pub head_batch_norm: bool,
 }
 
-/// The DINO projection head: `Linear → GELU → Linear → GELU → Linear`, ℓ2-normalize, then
-/// prototypes with unit-norm columns (weight normalization with the gain fixed to 1).
+/// Batch normalization of a head layer with the batch's own statistics (the head only runs in
+/// training, so no running statistics are kept): `γ · (x − mean) / √(var + 1e-5) + β`, mean and
+/// variance over the batch.
+#[derive(Module, Debug)]
+pub struct HeadNorm {
+    /// Scale `[width]`.
+    pub gamma: Param<Tensor<1>>,
+    /// Shift `[width]`.
+    pub beta: Param<Tensor<1>>,
+}
+
+impl HeadNorm {
+    fn new(width: usize, device: &Device) -> Self {
+        Self {
+            gamma: Param::from_tensor(Tensor::ones([width], device)),
+            beta: Param::from_tensor(Tensor::zeros([width], device)),
+        }
+    }
+
+    /// # Shapes
+    /// - `x`: `[batch, width]` → `[batch, width]`
+    pub fn forward(&self, x: Tensor<2>) -> Tensor<2> {
+        let c = x.clone() - x.mean_dim(0);
+        let var = c.clone().powi_scalar(2).mean_dim(0);
+        c / (var + 1e-5).sqrt() * self.gamma.val().unsqueeze() + self.beta.val().unsqueeze()
+    }
+}
+
+/// `x / max(‖x‖₂, 1e-12)` along `dim` (`F.normalize`).
+fn l2_normalize(x: Tensor<2>, dim: usize) -> Tensor<2> {
+    let norm = x
+        .clone()
+        .powi_scalar(2)
+        .sum_dim(dim)
+        .sqrt()
+        .clamp_min(1e-12);
+    x / norm
+}
+
+/// The DINO projection head: `Linear → [BN] → GELU → Linear → [BN] → GELU → Linear`,
+/// ℓ2-normalize, then prototypes with unit-norm columns (weight normalization with the gain
+/// fixed to 1).
 #[derive(Module, Debug)]
 pub struct DinoHead {
     /// The three MLP layers.
     pub mlp: Vec<Linear>,
+    /// Batch norms after the hidden layers (empty without `head_batch_norm`).
+    pub norms: Vec<HeadNorm>,
     /// Prototype directions `[bottleneck, prototypes]`, normalized per column in the forward.
     pub last_layer: Param<Tensor<2>>,
 }
@@ -54,14 +99,14 @@ impl DinoHead {
         let mut x = x;
         for (i, layer) in self.mlp.iter().enumerate() {
             x = layer.forward(x);
+            if let Some(norm) = self.norms.get(i) {
+                x = norm.forward(x);
+            }
             if i + 1 < n {
                 x = gelu(x);
             }
         }
-        let x = x.clone() / (x.powi_scalar(2).sum_dim(1).sqrt() + 1e-6);
-        let w = self.last_layer.val();
-        let w = w.clone() / (w.powi_scalar(2).sum_dim(0).sqrt() + 1e-6);
-        x.matmul(w)
+        l2_normalize(x, 1).matmul(l2_normalize(self.last_layer.val(), 0))
     }
 }
 
@@ -99,6 +144,13 @@ impl DinoConfig {
                 .windows(2)
                 .map(|w| LinearConfig::new(w[0], w[1]).init(device))
                 .collect(),
+            norms: if self.head_batch_norm {
+                (0..2)
+                    .map(|_| HeadNorm::new(self.head_hidden, device))
+                    .collect()
+            } else {
+                Vec::new()
+            },
             last_layer: Param::from_tensor(Tensor::random(
                 [self.head_bottleneck, self.num_prototypes],
                 burn::tensor::Distribution::Normal(0.0, 0.02),
@@ -206,5 +258,102 @@ impl Dino {
             .center
             .map(|c| (c.mul_scalar(m) + mean.mul_scalar(1.0 - m)).detach());
         self
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::vit::VitConfig;
+
+    /// Mean entropy (nats) of the centred, sharpened teacher distribution of a batch.
+    fn teacher_entropy(head: &DinoHead, x: Tensor<2>) -> f64 {
+        let t = head.forward(x);
+        let p = softmax((t.clone() - t.mean_dim(0)).div_scalar(0.04), 1);
+        let plogp = p.clone() * p.add_scalar(1e-20).log();
+        plogp.sum_dim(1).mean().neg().into_scalar::<f32>() as f64
+    }
+
+    #[test]
+    fn batch_normalized_head_separates_nearly_identical_inputs() {
+        // the [cls] tokens of a random encoder on tactile difference images differ by ~1e-3
+        // across a batch; without batch norm the centred teacher output is then uniform
+        // (entropy ln K: nothing for the student to learn), with it the samples stay apart
+        let device = Device::flex();
+        let k = 256;
+        let cfg = |bn: bool| {
+            DinoConfig::new(VitConfig::new([16, 16], 8).with_embed_dim(32))
+                .with_head_hidden(64)
+                .with_head_bottleneck(16)
+                .with_num_prototypes(k)
+                .with_head_batch_norm(bn)
+        };
+        let common = Tensor::<2>::random(
+            [1, 32],
+            burn::tensor::Distribution::Normal(0.0, 1.0),
+            &device,
+        );
+        let x = common.expand([16, 32])
+            + Tensor::<2>::random(
+                [16, 32],
+                burn::tensor::Distribution::Normal(0.0, 1e-3),
+                &device,
+            );
+        let uniform = (k as f64).ln();
+        let plain = teacher_entropy(&cfg(false).head(&device), x.clone());
+        let normed = teacher_entropy(&cfg(true).head(&device), x);
+        assert!(
+            plain > uniform - 0.01,
+            "plain head: entropy {plain} vs ln K {uniform}"
+        );
+        assert!(
+            normed < uniform - 1.0,
+            "batch-normed head: entropy {normed} vs ln K {uniform}"
+        );
+    }
+
+    #[test]
+    fn gradients_reach_the_student_and_not_the_teacher() {
+        let device = Device::flex().autodiff();
+        let dino = DinoConfig::new(
+            VitConfig::new([16, 16], 8)
+                .with_embed_dim(32)
+                .with_depth(1)
+                .with_num_heads(4)
+                .with_num_registers(1),
+        )
+        .with_head_hidden(32)
+        .with_head_bottleneck(16)
+        .with_num_prototypes(64)
+        .with_head_batch_norm(true)
+        .init(&device);
+        let x = Tensor::<5>::random(
+            [4, 1, 6, 16, 16],
+            burn::tensor::Distribution::Default,
+            &device,
+        );
+        let all: Vec<usize> = (0..4).collect();
+        let views = DinoViews {
+            global: vec![vec![all.clone(); 4], vec![all.clone(); 4]],
+            local: vec![vec![vec![0, 1]; 4]],
+        };
+        let (loss, _) = dino.loss(x, &views, 0.04);
+        let grads = loss.backward();
+        let norm = |g: Option<Tensor<2>>| g.map(|g| g.abs().sum().into_scalar::<f32>());
+        let student = norm(dino.encoder.patch_embed.weight.val().grad(&grads));
+        assert!(
+            student.is_some_and(|g| g > 0.0),
+            "student patch embedding: {student:?}"
+        );
+        let head = norm(dino.head.mlp[0].weight.val().grad(&grads));
+        assert!(head.is_some_and(|g| g > 0.0), "student head: {head:?}");
+        assert_eq!(
+            norm(dino.teacher_encoder.patch_embed.weight.val().grad(&grads)),
+            None
+        );
+        assert_eq!(
+            norm(dino.teacher_head.mlp[0].weight.val().grad(&grads)),
+            None
+        );
     }
 }

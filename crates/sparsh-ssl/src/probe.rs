@@ -22,6 +22,9 @@ pub struct ProbeScore {
     pub rmse_mn: f64,
     /// RMSE of predicting the training mean (what a useless encoder scores).
     pub baseline_mn: f64,
+    /// Spread of the pooled features across samples: the standard deviation over samples,
+    /// averaged over feature dimensions (near 0 when the encoder has collapsed to a constant).
+    pub feature_std: f64,
 }
 
 impl ProbeSet {
@@ -90,11 +93,27 @@ impl ProbeSet {
                 .expect("f32");
             feats.extend((0..n).map(|i| v[i * d..(i + 1) * d].iter().map(|&x| x as f64).collect()));
         }
-        ridge_score(&feats, &self.forces, &self.test)
+        ProbeScore {
+            feature_std: feature_std(&feats),
+            ..ridge_score(&feats, &self.forces, &self.test)
+        }
     }
 }
 
-/// Ridge regression on standardized features (λ = 1e-2 · samples), scored on the test rows.
+/// Standard deviation of each feature over the samples, averaged over the features.
+pub fn feature_std(x: &[Vec<f64>]) -> f64 {
+    let (n, d) = (x.len() as f64, x[0].len());
+    (0..d)
+        .map(|j| {
+            let m = x.iter().map(|v| v[j]).sum::<f64>() / n;
+            (x.iter().map(|v| (v[j] - m).powi(2)).sum::<f64>() / n).sqrt()
+        })
+        .sum::<f64>()
+        / d as f64
+}
+
+/// Ridge regression on standardized features (λ = 1e-2 · samples), scored on the test rows
+/// (`feature_std` of the result is left at 0; [`feature_std`] computes it).
 pub fn ridge_score(x: &[Vec<f64>], y: &[[f64; 3]], test: &[bool]) -> ProbeScore {
     let d = x[0].len();
     let train: Vec<usize> = (0..x.len()).filter(|&i| !test[i]).collect();
@@ -147,6 +166,7 @@ pub fn ridge_score(x: &[Vec<f64>], y: &[[f64; 3]], test: &[bool]) -> ProbeScore 
     ProbeScore {
         rmse_mn: 1000.0 * (se / n).sqrt(),
         baseline_mn: 1000.0 * (se0 / n).sqrt(),
+        feature_std: 0.0,
     }
 }
 
@@ -215,5 +235,18 @@ mod tests {
             .collect();
         let s = ridge_score(&noise, &y, &test);
         assert!(s.rmse_mn > 0.9 * s.baseline_mn, "{s:?}");
+    }
+
+    #[test]
+    fn feature_std_is_the_mean_spread_and_zero_for_a_constant() {
+        // two features: ±1 (std 1) and 3·(±1) (std 3) → mean 2
+        let x: Vec<Vec<f64>> = (0..10)
+            .map(|i| {
+                let s = if i % 2 == 0 { 1.0 } else { -1.0 };
+                vec![s, 3.0 * s + 7.0]
+            })
+            .collect();
+        assert!((feature_std(&x) - 2.0).abs() < 1e-12);
+        assert_eq!(feature_std(&vec![vec![0.3, -2.0]; 6]), 0.0);
     }
 }

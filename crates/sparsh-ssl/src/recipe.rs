@@ -121,6 +121,9 @@ pub struct DinoSection {
     pub teacher_temp_warmup_steps: usize,
     /// Centre momentum.
     pub center_momentum: f64,
+    /// Batch normalization after the head's hidden layers (DINO's `use_bn_in_head`; official
+    /// off).
+    pub head_batch_norm: bool,
     /// Teacher EMA momentum: start, end (linear over the run; official fixed 0.998).
     pub ema: [f64; 2],
     /// Views.
@@ -137,6 +140,7 @@ impl Default for DinoSection {
             teacher_temp: [0.04, 0.07],
             teacher_temp_warmup_steps: 1000,
             center_momentum: 0.9,
+            head_batch_norm: false,
             ema: [0.998, 0.998],
             views: DinoViewConfig::default(),
         }
@@ -447,7 +451,8 @@ impl Recipe {
             .with_head_bottleneck(d.head_bottleneck)
             .with_num_prototypes(d.num_prototypes)
             .with_student_temp(d.student_temp)
-            .with_center_momentum(d.center_momentum))
+            .with_center_momentum(d.center_momentum)
+            .with_head_batch_norm(d.head_batch_norm))
     }
 
     /// I-JEPA / V-JEPA configuration.
