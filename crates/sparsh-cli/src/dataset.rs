@@ -364,6 +364,7 @@ fn write_sequence(
             },
             pose_change_se2: [dp[0], dp[1], dr[2]],
             contact_area_mm2: frame.contact_area_mm2,
+            markers_px: frame.markers_px.clone(),
             background: background.clone(),
         });
         local.gap_s += frame.timings.gap_s;

@@ -84,6 +84,22 @@ enum Command {
         #[arg(long, value_enum, default_value = "cpu")]
         device: dataset::DeviceArg,
     },
+    /// Time the image formation per frame: each model, with and without shadows, at 320×240
+    /// and 640×480, on 1 and 2 CPU threads (a ball pressed into the GelSight 2017 preset).
+    BenchOptics {
+        /// Calibration of the calibrated model.
+        #[arg(long, default_value = "assets/calib/gelsight")]
+        calib: PathBuf,
+        /// Timed frames per configuration (after one warm-up); the median is reported.
+        #[arg(long, default_value_t = 15)]
+        repeats: usize,
+        /// CPU thread counts to time.
+        #[arg(long = "threads-list", default_values = ["1", "2"])]
+        threads: Vec<usize>,
+        /// Also time each model on the GPU.
+        #[arg(long)]
+        gpu: bool,
+    },
     /// Write a dataset in another project's layout.
     Export {
         /// Dataset directory written by `generate`.
@@ -137,6 +153,10 @@ enum Command {
         /// Also write each rendered frame as DIR/NNN.png.
         #[arg(long)]
         save: Option<PathBuf>,
+        /// Also write real | simulated | difference (×4, on grey) of the frame with the median
+        /// crop PSNR to this PNG.
+        #[arg(long)]
+        figure: Option<PathBuf>,
     },
     /// Check every file of a dataset against the checksums in its manifest.
     Verify {
@@ -239,6 +259,12 @@ fn run(cli: Cli) -> Result<()> {
             strides,
             device,
         } => dataset::bench(&scene, &solvers, &strides, device),
+        Command::BenchOptics {
+            calib,
+            repeats,
+            threads,
+            gpu,
+        } => optics::bench(&calib, repeats, &threads, gpu),
         Command::Verify { dir } => dataset::verify(&dir),
         Command::Calibrate {
             pack,
@@ -255,14 +281,18 @@ fn run(cli: Cli) -> Result<()> {
             frames,
             json,
             save,
+            figure,
         } => optics::sim2real(
             &pack,
             &calib,
-            ball_radius_mm,
-            pixmm,
-            frames,
-            json,
-            save.as_deref(),
+            optics::Sim2realOptions {
+                ball_radius_mm,
+                mm_per_px: pixmm,
+                frames,
+                json,
+                save: save.as_deref(),
+                figure: figure.as_deref(),
+            },
         ),
         Command::Export {
             dir,

@@ -3,7 +3,7 @@
 
 use std::path::Path;
 
-use anyhow::{Result, anyhow, bail};
+use anyhow::{Context, Result, anyhow, bail};
 use sparsh_optics::CalibrationPack;
 use sparsh_optics::sim2real::{
     BallSetup, FitOptions, FrameScore, calibrate_pack, pack_renderer, render_and_score, summarize,
@@ -70,35 +70,64 @@ pub fn calibrate(
     Ok(())
 }
 
-/// Renders `frames` of `pack` with the calibration in `calib` and prints PSNR, SSIM and MAE
-/// over the full image and the crop of half-width 2a around the contact.
-pub fn sim2real(
-    pack_path: &Path,
-    calib: &Path,
-    ball_radius_mm: f64,
-    mm_per_px: f64,
-    frames: FrameSet,
-    json: bool,
-    save: Option<&Path>,
-) -> Result<()> {
-    let setup = setup(ball_radius_mm, mm_per_px)?;
+/// What `sparsh sim2real` scores and writes.
+pub struct Sim2realOptions<'a> {
+    /// Ball radius (mm).
+    pub ball_radius_mm: f64,
+    /// Pixel pitch of the pack (mm per pixel).
+    pub mm_per_px: f64,
+    /// Frames to score.
+    pub frames: FrameSet,
+    /// Print JSON instead of a table.
+    pub json: bool,
+    /// Directory for each rendered frame.
+    pub save: Option<&'a Path>,
+    /// PNG of real | simulated | difference for the median frame.
+    pub figure: Option<&'a Path>,
+}
+
+/// Renders the chosen frames of `pack` with the calibration in `calib` and prints PSNR, SSIM
+/// and MAE over the full image and the crop of half-width 2a around the contact.
+pub fn sim2real(pack_path: &Path, calib: &Path, options: Sim2realOptions) -> Result<()> {
+    let setup = setup(options.ball_radius_mm, options.mm_per_px)?;
     let pack = CalibrationPack::read(pack_path)?;
     let calibration =
         sparsh_optics::Calibration::load(calib).map_err(|e| anyhow!("{}: {e}", calib.display()))?;
-    if let Some(dir) = save {
+    if let Some(dir) = options.save {
         std::fs::create_dir_all(dir).map_err(|e| anyhow!("{}: {e}", dir.display()))?;
     }
     let renderer = pack_renderer(&calibration, &pack, setup, None);
     let mut scores: Vec<FrameScore> = Vec::new();
-    for k in frames.indices(pack.frames.len()) {
+    let mut images = Vec::new();
+    for k in options.frames.indices(pack.frames.len()) {
         let (image, score) = render_and_score(&renderer, &pack, k, setup)
             .map_err(|e| anyhow!("{}: frame {k}: {e}", pack_path.display()))?;
-        if let Some(dir) = save {
+        if let Some(dir) = options.save {
             let png = sparsh_data::encode_png(&image).map_err(anyhow::Error::msg)?;
             sparsh_data::write_atomic(&dir.join(format!("{k:03}.png")), &png)?;
         }
         scores.push(score);
+        if options.figure.is_some() {
+            images.push(image);
+        }
     }
+    if let Some(path) = options.figure
+        && !scores.is_empty()
+    {
+        let mut order: Vec<usize> = (0..scores.len()).collect();
+        order.sort_by(|&a, &b| scores[a].crop.psnr_db.total_cmp(&scores[b].crop.psnr_db));
+        let median = order[order.len() / 2];
+        let figure = side_by_side(&pack.frames[scores[median].frame], &images[median]);
+        let png = sparsh_data::encode_png(&figure).map_err(anyhow::Error::msg)?;
+        sparsh_data::write_atomic(path, &png)?;
+        eprintln!(
+            "{}: frame {} (median crop PSNR {:.2} dB)",
+            path.display(),
+            scores[median].frame,
+            scores[median].crop.psnr_db
+        );
+    }
+    let json = options.json;
     let summary = summarize(&scores);
     if json {
         println!(
@@ -125,4 +154,118 @@ pub fn sim2real(
         println!("{} frames", summary.frames);
     }
     Ok(())
+}
+
+/// Taxim 1.4.1's CPU render of one 640×480 frame on this machine (JAX CPU backend; median of 10
+/// after warm-up, idle machine): with shadows, without.
+const TAXIM_640_MS: (f64, f64) = (499.0, 113.0);
+
+/// `sparsh bench-optics`: median time per frame of each model, with and without shadows, at
+/// 320×240 and 640×480 on each CPU thread count, against Taxim's CPU render at 640×480.
+pub fn bench(calib: &Path, repeats: usize, threads: &[usize], gpu: bool) -> Result<()> {
+    use sparsh_optics::{PhotometricRenderer, Renderer, Surface, photometric::shadow_settings};
+    anyhow::ensure!(repeats > 0, "--repeats must be at least 1");
+    let calibration =
+        sparsh_optics::Calibration::load(calib).map_err(|e| anyhow!("{}: {e}", calib.display()))?;
+    let preset = sparsh_scene::SensorConfig::preset("gelsight2017").expect("shipped preset");
+    let gpu = match gpu {
+        true => Some(sparsh_optics::GpuContext::shared()?),
+        false => None,
+    };
+    let median_ms = |renderer: &Renderer, surface: &Surface| -> Result<f64> {
+        renderer.render(surface)?;
+        let mut times = Vec::with_capacity(repeats);
+        for _ in 0..repeats {
+            let t = std::time::Instant::now();
+            std::hint::black_box(renderer.render(surface)?);
+            times.push(t.elapsed().as_secs_f64() * 1e3);
+        }
+        times.sort_by(f64::total_cmp);
+        Ok(times[times.len() / 2])
+    };
+    println!(
+        "| model | size | shadows | device | threads | ms/frame | × faster than Taxim (same shadows, 640×480) |"
+    );
+    println!("|---|---|---|---|---|---|---|");
+    for (w, h) in [(320usize, 240usize), (640, 480)] {
+        // The same 18.9 × 14.2 mm view at both sizes; a 2 mm ball pressed to a 1.2 mm contact.
+        let mut sensor = preset.clone();
+        sensor.width_px = w;
+        sensor.height_px = h;
+        sensor.mm_per_px = preset.mm_per_px * preset.width_px as f64 / w as f64;
+        let grid = sensor.grid();
+        let uz = sparsh_optics::ball::ball_press_uz_mm(grid, [1.0, -0.5], 1.2, 2.0)
+            .map_err(anyhow::Error::msg)?;
+        let zeros = vec![0.0; grid.len()];
+        let surface = Surface {
+            grid,
+            ux_mm: &zeros,
+            uy_mm: &zeros,
+            uz_mm: &uz,
+        };
+        for shadows in [false, true] {
+            let steps = 32;
+            let photometric = Renderer::Photometric(PhotometricRenderer::new(
+                &sensor,
+                shadows.then(|| shadow_settings(&sensor, steps)),
+            )?);
+            let calibrated = sparsh_optics::CalibratedRenderer::new(&calibration, w, h);
+            let calibrated = Renderer::Calibrated(if shadows {
+                calibrated.with_shadows(&sensor, steps)
+            } else {
+                calibrated
+            });
+            for (name, renderer) in [("photometric", &photometric), ("calibrated", &calibrated)] {
+                let taxim = if shadows {
+                    TAXIM_640_MS.0
+                } else {
+                    TAXIM_640_MS.1
+                };
+                let row = |device: &str, threads: &str, ms: f64| {
+                    println!(
+                        "| {name} | {w}×{h} | {} | {device} | {threads} | {ms:.1} | {:.1} |",
+                        if shadows { "yes" } else { "no" },
+                        taxim / ms
+                    );
+                };
+                for &n in threads {
+                    let pool = rayon::ThreadPoolBuilder::new()
+                        .num_threads(n)
+                        .build()
+                        .context("cannot start a thread pool")?;
+                    let ms = pool.install(|| median_ms(renderer, &surface))?;
+                    row("cpu", &n.to_string(), ms);
+                }
+                if let Some(context) = &gpu {
+                    let on_gpu = renderer.on_gpu(context)?;
+                    row(
+                        &format!("gpu ({})", context.adapter()),
+                        "–",
+                        median_ms(&on_gpu, &surface)?,
+                    );
+                }
+            }
+        }
+    }
+    println!(
+        "Taxim 1.4.1, JAX CPU, 640×480 on this machine: {} ms with shadows, {} ms without.",
+        TAXIM_640_MS.0, TAXIM_640_MS.1
+    );
+    Ok(())
+}
+
+/// real | simulated | 128 + 4·(simulated − real), side by side.
+fn side_by_side(real: &image::RgbImage, sim: &image::RgbImage) -> image::RgbImage {
+    let (w, h) = real.dimensions();
+    image::RgbImage::from_fn(3 * w, h, |x, y| {
+        let (panel, x) = (x / w, x % w);
+        let (r, s) = (real.get_pixel(x, y).0, sim.get_pixel(x, y).0);
+        match panel {
+            0 => image::Rgb(r),
+            1 => image::Rgb(s),
+            _ => image::Rgb(std::array::from_fn(|c| {
+                (128.0 + 4.0 * (s[c] as f64 - r[c] as f64)).clamp(0.0, 255.0) as u8
+            })),
+        }
+    })
 }

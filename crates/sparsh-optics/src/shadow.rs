@@ -12,9 +12,9 @@
 //! s toward the light is thus in shadow iff s exceeds the light's elevation slope r.
 //!
 //! The march ends where the ray has cleared the highest point of the field by the penumbra
-//! (t ≥ (h_max − h_P)/(r − tan α)), at the light's foot, or at `max_march_mm`, whichever comes
-//! first, and always takes `steps` equal steps: per pixel, bounded, no recursion, so a compute
-//! shader runs the same arithmetic.
+//! (t ≥ (h_max − h_P)/m_c with m_c = tan(atan r − α): no occluder beyond dims the light), at the
+//! light's foot, or at `max_march_mm`, whichever comes first, and always takes `steps` equal
+//! steps: per pixel, bounded, no recursion, so a compute shader runs the same arithmetic.
 
 use rayon::prelude::*;
 use sparsh_scene::{Grid, Light};
@@ -40,30 +40,106 @@ impl Default for ShadowSettings {
     }
 }
 
-/// Height of the gel surface (mm toward the camera) at (x, y) mm in the grid's frame, bilinear
-/// between cell centres and held constant beyond the outer centres.
-pub fn sample_height_mm(height_mm: &[f64], grid: Grid, x_mm: f64, y_mm: f64) -> f64 {
+/// A field on the grid (one value per cell, e.g. the surface height in mm) at (x, y) mm in the
+/// grid's frame, bilinear between cell centres and held constant beyond the outer centres.
+pub fn sample_bilinear(field: &[f64], grid: Grid, x_mm: f64, y_mm: f64) -> f64 {
     let fx = (x_mm / grid.cell_mm + grid.nx as f64 / 2.0 - 0.5).clamp(0.0, (grid.nx - 1) as f64);
     let fy = (y_mm / grid.cell_mm + grid.ny as f64 / 2.0 - 0.5).clamp(0.0, (grid.ny - 1) as f64);
     let (i0, j0) = (fx.floor() as usize, fy.floor() as usize);
     let (i1, j1) = ((i0 + 1).min(grid.nx - 1), (j0 + 1).min(grid.ny - 1));
     let (tx, ty) = (fx - i0 as f64, fy - j0 as f64);
-    let at = |i: usize, j: usize| height_mm[j * grid.nx + i];
+    let at = |i: usize, j: usize| field[j * grid.nx + i];
     let top = at(i0, j0) * (1.0 - tx) + at(i1, j0) * tx;
     let bottom = at(i0, j1) * (1.0 - tx) + at(i1, j1) * tx;
     top * (1.0 - ty) + bottom * ty
 }
 
+/// Cells per side of the tiles whose maxima let [`light_visibility`] skip rays that clear
+/// everything.
+const TILE: usize = 16;
+
+/// The surface height h = −u_z (mm toward the camera) on a grid, with its maximum and the
+/// maximum over each tile's 3 × 3 block of tiles (the shortcut of [`light_visibility`]).
+#[derive(Debug, Clone)]
+pub struct HeightField {
+    /// Heights, row-major (mm).
+    pub height_mm: Vec<f64>,
+    /// The grid.
+    pub grid: Grid,
+    /// Highest point (mm).
+    pub max_mm: f64,
+    /// Tiles along x and y.
+    tiles: [usize; 2],
+    /// Highest point within each tile and its eight neighbours (mm).
+    block_max_mm: Vec<f64>,
+}
+
+impl HeightField {
+    /// The height field of the surface u_z (mm, negative toward the camera).
+    pub fn from_uz(uz_mm: &[f64], grid: Grid) -> HeightField {
+        let height_mm: Vec<f64> = uz_mm.iter().map(|u| -u).collect();
+        let max_mm = height_mm.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+        let tiles = [grid.nx.div_ceil(TILE), grid.ny.div_ceil(TILE)];
+        let mut tile_max = vec![f64::NEG_INFINITY; tiles[0] * tiles[1]];
+        for (c, &h) in height_mm.iter().enumerate() {
+            let t = (c / grid.nx / TILE) * tiles[0] + (c % grid.nx / TILE);
+            tile_max[t] = tile_max[t].max(h);
+        }
+        let block_max_mm = (0..tiles[0] * tiles[1])
+            .map(|t| {
+                let (tx, ty) = (t % tiles[0], t / tiles[0]);
+                let mut m = f64::NEG_INFINITY;
+                for y in ty.saturating_sub(1)..(ty + 2).min(tiles[1]) {
+                    for x in tx.saturating_sub(1)..(tx + 2).min(tiles[0]) {
+                        m = m.max(tile_max[y * tiles[0] + x]);
+                    }
+                }
+                m
+            })
+            .collect();
+        HeightField {
+            height_mm,
+            grid,
+            max_mm,
+            tiles,
+            block_max_mm,
+        }
+    }
+
+    /// Highest point within one tile of the (clamped) position (x, y) mm.
+    fn block_max_at(&self, x_mm: f64, y_mm: f64) -> f64 {
+        let g = self.grid;
+        let fx = (x_mm / g.cell_mm + g.nx as f64 / 2.0 - 0.5).clamp(0.0, (g.nx - 1) as f64);
+        let fy = (y_mm / g.cell_mm + g.ny as f64 / 2.0 - 0.5).clamp(0.0, (g.ny - 1) as f64);
+        let (tx, ty) = (fx as usize / TILE, fy as usize / TILE);
+        self.block_max_mm[ty * self.tiles[0] + tx]
+    }
+}
+
 /// Visible fraction (0–1) of a light at `light` = (x, y, height) mm from the surface point
-/// `p` = (x, y, height) mm, over the height field `height_mm` whose maximum is `max_height_mm`
-/// (see the module doc for the formula).
+/// `p` = (x, y, height) mm over the height field (see the module doc for the formula).
+///
+/// An exact shortcut first: occluder slopes up to m_c = tan(atan r − α) leave the whole LED in
+/// view (v = 1), so when tile maxima show every marched sample below h_P + t·m_c the march is
+/// skipped. Samples at t lie within half a tile of a probe at t_j = (j + ½)·Δ (Δ the tile's
+/// width), and their bilinear corners within the probe's 3 × 3 block of tiles, so
+/// max_block(t_j) ≤ h_P + max(Δt, t_j − Δ/2)·m_c for every probe proves it. The result is the
+/// same with or without the shortcut; only the time differs.
 pub fn light_visibility(
-    height_mm: &[f64],
-    grid: Grid,
-    max_height_mm: f64,
+    field: &HeightField,
     p: [f64; 3],
     light: [f64; 3],
     settings: ShadowSettings,
+) -> f64 {
+    visibility(field, p, light, settings, true)
+}
+
+fn visibility(
+    field: &HeightField,
+    p: [f64; 3],
+    light: [f64; 3],
+    settings: ShadowSettings,
+    shortcut: bool,
 ) -> f64 {
     let (dx, dy) = (light[0] - p[0], light[1] - p[1]);
     let reach = dx.hypot(dy);
@@ -74,26 +150,50 @@ pub fn light_visibility(
     let slope = rise / reach;
     let distance = reach.hypot(rise);
     let half_angle = (settings.led_radius_mm / distance).atan();
-    let clear_slope = slope - half_angle.tan();
-    let march = if clear_slope > 0.0 {
-        reach
-            .min(settings.max_march_mm)
-            .min((max_height_mm - p[2]) / clear_slope)
+    let elevation = slope.atan();
+    let clear_slope = if elevation > half_angle {
+        Some((elevation - half_angle).tan())
     } else {
-        reach.min(settings.max_march_mm)
+        None
+    };
+    let march = match clear_slope {
+        Some(m) => reach
+            .min(settings.max_march_mm)
+            .min((field.max_mm - p[2]) / m),
+        None => reach.min(settings.max_march_mm),
     };
     if march <= 0.0 {
         return 1.0;
     }
     let dt = march / settings.steps as f64;
     let (ux, uy) = (dx / reach, dy / reach);
+    // Samples outside [lo, hi] lie in probe intervals proven clear (slope ≤ m_c): skipping
+    // them leaves the maximum, and v, unchanged.
+    let (mut lo, mut hi) = (dt, march);
+    if let Some(m) = clear_slope.filter(|_| shortcut) {
+        let tile_mm = TILE as f64 * field.grid.cell_mm;
+        (lo, hi) = (f64::INFINITY, f64::NEG_INFINITY);
+        for j in 0..(march / tile_mm).ceil() as usize {
+            let t = (j as f64 + 0.5) * tile_mm;
+            let floor = p[2] + dt.max(t - tile_mm / 2.0) * m;
+            if field.block_max_at(p[0] + t * ux, p[1] + t * uy) > floor {
+                lo = lo.min(t - tile_mm / 2.0);
+                hi = hi.max(t + tile_mm / 2.0);
+            }
+        }
+        if lo > hi {
+            return 1.0;
+        }
+    }
+    let first = ((lo / dt).ceil() as u32).max(1);
+    let last = ((hi / dt).floor() as u32).min(settings.steps);
     let mut occluder = f64::NEG_INFINITY;
-    for k in 1..=settings.steps {
+    for k in first..=last {
         let t = k as f64 * dt;
-        let h = sample_height_mm(height_mm, grid, p[0] + t * ux, p[1] + t * uy);
+        let h = sample_bilinear(&field.height_mm, field.grid, p[0] + t * ux, p[1] + t * uy);
         occluder = occluder.max((h - p[2]) / t);
     }
-    let clearance = slope.atan() - occluder.atan();
+    let clearance = elevation - occluder.atan();
     penumbra(clearance, half_angle)
 }
 
@@ -127,19 +227,22 @@ pub fn visibilities(
     lights: &[Light],
     settings: ShadowSettings,
 ) -> Vec<f64> {
-    let height: Vec<f64> = uz_mm.iter().map(|u| -u).collect();
-    let max_height = height.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    let field = HeightField::from_uz(uz_mm, grid);
     let points: Vec<[f64; 3]> = lights.iter().map(light_point).collect();
-    (0..grid.len())
-        .into_par_iter()
-        .flat_map_iter(|c| {
-            let p = [grid.x_mm(c % grid.nx), grid.y_mm(c / grid.nx), height[c]];
-            let height = &height;
-            points
-                .iter()
-                .map(move |&l| light_visibility(height, grid, max_height, p, l, settings))
-        })
-        .collect()
+    let mut out = vec![0.0; grid.len() * lights.len()];
+    out.par_chunks_mut(lights.len().max(1))
+        .enumerate()
+        .for_each(|(c, v)| {
+            let p = [
+                grid.x_mm(c % grid.nx),
+                grid.y_mm(c / grid.nx),
+                field.height_mm[c],
+            ];
+            for (v, &l) in v.iter_mut().zip(&points) {
+                *v = light_visibility(&field, p, l, settings);
+            }
+        });
+    out
 }
 
 #[cfg(test)]
@@ -255,6 +358,37 @@ mod tests {
             shadowed += usize::from(*va < 0.5);
         }
         assert!(shadowed > 20, "the bump casts a shadow ({shadowed} cells)");
+    }
+
+    /// The tile shortcut changes nothing: every cell's visibility equals the full march's,
+    /// over bumps of several sizes lit from several sides.
+    #[test]
+    fn the_tile_shortcut_is_exact() {
+        let uz: Vec<f64> = (0..GRID.len())
+            .map(|c| {
+                let (x, y) = (GRID.x_mm(c % GRID.nx), GRID.y_mm(c / GRID.nx));
+                -0.5 * (-((x - 1.0).powi(2) + y * y) / 0.3).exp()
+                    - 0.2 * (-((x + 2.5).powi(2) + (y - 0.5).powi(2)) / 0.05).exp()
+                    - 0.01 * (3.0 * x).sin()
+            })
+            .collect();
+        let field = HeightField::from_uz(&uz, GRID);
+        let s = ShadowSettings::default();
+        let mut skipped = 0;
+        for light in [[9.0, 2.0, 2.5], [-7.0, -3.0, 1.5], [0.5, 9.0, 4.0]] {
+            for c in 0..GRID.len() {
+                let p = [
+                    GRID.x_mm(c % GRID.nx),
+                    GRID.y_mm(c / GRID.nx),
+                    field.height_mm[c],
+                ];
+                let fast = visibility(&field, p, light, s, true);
+                let full = visibility(&field, p, light, s, false);
+                assert_eq!(fast, full, "cell {c}, light {light:?}");
+                skipped += usize::from(full == 1.0);
+            }
+        }
+        assert!(skipped > 1000 && skipped < 3 * GRID.len(), "{skipped}");
     }
 
     #[test]

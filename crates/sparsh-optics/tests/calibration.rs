@@ -338,3 +338,57 @@ fn wrong_dtype_is_named() {
     let e = CalibrationPack::read(&path).unwrap_err().to_string();
     assert!(e.contains("f0") && e.contains("uint8"), "{e}");
 }
+
+/// Arrays of the wrong shape are named with the shape expected and the shape found.
+#[test]
+fn wrong_shapes_are_named() {
+    let write = |path: &Path, imgs_h: u64, centre_cols: u64| {
+        let mut npz = npyz::npz::NpzWriter::create(path).unwrap();
+        let opts = || npyz::zip::write::FileOptions::default();
+        let mut put_u8 = |name: &str, shape: &[u64]| {
+            let len: u64 = shape.iter().product();
+            let mut w = npz
+                .array::<u8>(name, opts())
+                .unwrap()
+                .default_dtype()
+                .shape(shape)
+                .begin_nd()
+                .unwrap();
+            w.extend(vec![100u8; len as usize]).unwrap();
+            w.finish().unwrap();
+        };
+        put_u8("f0", &[8, 10, 3]);
+        put_u8("imgs", &[1, imgs_h, 10, 3]);
+        let mut put_f64 = |name: &str, shape: &[u64], v: f64| {
+            let len: u64 = shape.iter().product();
+            let mut w = npz
+                .array::<f64>(name, opts())
+                .unwrap()
+                .default_dtype()
+                .shape(shape)
+                .begin_nd()
+                .unwrap();
+            w.extend(vec![v; len as usize]).unwrap();
+            w.finish().unwrap();
+        };
+        put_f64("touch_center", &[1, centre_cols], 4.0);
+        put_f64("touch_radius", &[1], 2.0);
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("shapes.npz");
+    write(&path, 9, 2);
+    let e = CalibrationPack::read(&path).unwrap_err().to_string();
+    assert!(
+        e.contains("shapes.npz") && e.contains("imgs") && e.contains("[1, 9, 10, 3]"),
+        "{e}"
+    );
+    write(&path, 8, 3);
+    let e = CalibrationPack::read(&path).unwrap_err().to_string();
+    assert!(e.contains("touch_center") && e.contains("[1, 3]"), "{e}");
+    assert_eq!(e.lines().count(), 1, "{e}");
+    write(&path, 8, 2);
+    assert!(
+        CalibrationPack::read(&path).is_ok(),
+        "the well-formed pack reads"
+    );
+}

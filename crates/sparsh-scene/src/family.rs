@@ -12,8 +12,8 @@ use rand_chacha::ChaCha8Rng;
 use serde::Deserialize;
 
 use crate::{
-    Anchor, Gel, IndenterSpec, Keyframe, LengthUnit, OutputSpec, Scene, SceneError, SensorSection,
-    ShapeKind, SolverKind, check_margin, check_stride, one_cell,
+    Anchor, Gel, IndenterSpec, Keyframe, LengthUnit, OpticsSpec, OutputSpec, Scene, SceneError,
+    SensorSection, ShapeKind, SolverKind, check_margin, check_stride, one_cell,
 };
 
 /// A number, or a `[min, max]` range drawn uniformly per sequence.
@@ -74,6 +74,12 @@ struct Randomize {
     led_intensity: Option<Range>,
     /// Largest change of a light's colour channels (added, then clamped to [0, 1]).
     led_color_jitter: Option<f64>,
+    /// Exposure gain, drawn per sequence (sets `optics.exposure`).
+    exposure: Option<Range>,
+    /// Amplitude of the background's smooth variation, drawn per sequence.
+    background_variation: Option<Range>,
+    /// Camera noise standard deviation (0–255), drawn per sequence.
+    noise_std: Option<Range>,
 }
 
 /// `[[family.indenters]]`: one indenter kind with parameter ranges.
@@ -177,6 +183,8 @@ struct FamilyFile {
     gel: GelRanges,
     #[serde(default)]
     randomize: Randomize,
+    #[serde(default)]
+    optics: OpticsSpec,
     indenters: Vec<IndenterRanges>,
     motion: MotionSpec,
 }
@@ -460,6 +468,18 @@ impl FamilyFile {
                 }
             }
         }
+        let mut optics = self.optics.clone();
+        let r = &self.randomize;
+        for (range, value) in [
+            (r.exposure, &mut optics.exposure),
+            (r.background_variation, &mut optics.background_variation),
+            (r.noise_std, &mut optics.noise_std),
+        ] {
+            if let Some(range) = range {
+                *value = range.sample(&mut rng);
+            }
+        }
+        optics.resolve(path, &format!("{at}.optics"))?;
         let d = Gel::default();
         let g = &self.gel;
         let gel = Gel {
@@ -505,6 +525,7 @@ impl FamilyFile {
             indenter_spec,
             indenter,
             trajectory,
+            optics,
             output: spec.output.clone(),
         };
         Ok((scene, choice.split))

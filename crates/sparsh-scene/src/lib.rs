@@ -12,6 +12,7 @@ mod family;
 mod gap;
 pub mod grid;
 mod indenter;
+mod optics;
 mod sensor;
 mod trajectory;
 
@@ -25,6 +26,7 @@ pub use family::{DatasetSpec, MotionKind, Range, SequenceScene, Split, sequence_
 pub use gap::GapField;
 pub use grid::Grid;
 pub use indenter::{Anchor, Indenter, IndenterSpec, LengthUnit, MeshIndenter, ShapeKind, TriMesh};
+pub use optics::{OpticsModel, OpticsSpec};
 pub use sensor::{Light, MarkerGrid, PRESETS, SensorConfig};
 pub use trajectory::{FrameTarget, Keyframe, Pose, sample};
 
@@ -333,6 +335,8 @@ struct SceneFile {
     indenter: IndenterSpec,
     trajectory: Vec<Keyframe>,
     #[serde(default)]
+    optics: OpticsSpec,
+    #[serde(default)]
     output: OutputSpec,
 }
 
@@ -364,6 +368,8 @@ pub struct Scene {
     pub indenter: Indenter,
     /// Keyframes, sorted by time.
     pub trajectory: Vec<Keyframe>,
+    /// Image formation (calibration path resolved).
+    pub optics: OpticsSpec,
     /// What to write.
     pub output: OutputSpec,
 }
@@ -380,8 +386,9 @@ impl Scene {
 
     /// Parses and checks scene text; `path` names it in errors and anchors relative paths.
     pub fn parse(path: &Path, source: String) -> Result<Scene, SceneError> {
-        let file: SceneFile =
+        let mut file: SceneFile =
             toml::from_str(&source).map_err(|e| SceneError::from_toml(path, &source, e))?;
+        file.optics.resolve(path, "optics")?;
         let sensor = file.sensor.resolve(path)?;
         if let Some(stride) = file.mechanics_stride {
             check_stride(path, "mechanics_stride", stride, &sensor)?;
@@ -500,6 +507,7 @@ impl Scene {
             indenter_spec: file.indenter,
             indenter,
             trajectory,
+            optics: file.optics,
             output: file.output,
         })
     }

@@ -380,3 +380,22 @@ fn auto_solver_keys_are_checked() {
     );
     assert!(scene.auto.is_none());
 }
+
+#[test]
+fn bad_optics_sections_are_named() {
+    let line = error_of(&format!("{BASE}[optics]\nmodel = \"calibrated\"\n"));
+    assert!(line.contains("optics.calibration"), "{line}");
+    let line = error_of(&format!(
+        "{BASE}[optics]\nmodel = \"calibrated\"\ncalibration = \"no/such/dir\"\n"
+    ));
+    assert!(
+        line.contains("optics.calibration") && line.contains("map.json"),
+        "{line}"
+    );
+    let line = error_of(&format!("{BASE}[optics]\nnoise_std = -1.0\n"));
+    assert!(line.contains("optics.noise_std"), "{line}");
+    let line = error_of(&format!("{BASE}[optics]\nshadow_steps = 0\n"));
+    assert!(line.contains("optics.shadow_steps"), "{line}");
+    let line = error_of(&format!("{BASE}[optics]\nmodel = \"raytraced\"\n"));
+    assert!(line.contains("raytraced"), "{line}");
+}

@@ -10,7 +10,7 @@ use sparsh_contact::{
     ContactError, ContactInput, ContactSolver, Fields, NormalControl, SlipState, rigid_shift_mm,
     solver_for,
 };
-use sparsh_optics::{GpuContext, OpticsError, PhotometricRenderer, Renderer, Surface};
+use sparsh_optics::{GpuContext, ImageFormation, OpticsError, Surface};
 use sparsh_scene::{FrameTarget, GapField, Grid, Pose, Scene};
 
 /// Why a frame could not be simulated.
@@ -39,6 +39,9 @@ pub struct Frame {
     pub pose: Pose,
     /// The sensor image.
     pub image: RgbImage,
+    /// Centres of the printed markers on the deformed gel (pixels: x = column, y = row, pixel
+    /// (0, 0)'s centre at the origin), row by row; empty for a markerless gel.
+    pub markers_px: Vec<[f64; 2]>,
     /// Ground-truth fields over the camera's view.
     pub fields: Fields,
     /// Stick/slip state of the whole contact (also beyond the view).
@@ -65,7 +68,7 @@ pub struct Simulator {
     scene: Scene,
     targets: Vec<FrameTarget>,
     solver: Box<dyn ContactSolver>,
-    renderer: Renderer,
+    renderer: ImageFormation,
     previous_pose: Option<Pose>,
     next: usize,
 }
@@ -79,10 +82,7 @@ impl Simulator {
     /// Prepares the solver and renderer of `scene`, images formed on `gpu` if given.
     pub fn on_device(scene: Scene, gpu: Option<&GpuContext>) -> Result<Simulator, SimError> {
         let solver = solver_for(scene.solver, &scene.gel, scene.mechanics_grid());
-        let mut renderer = Renderer::Photometric(PhotometricRenderer::new(&scene.sensor, None)?);
-        if let Some(context) = gpu {
-            renderer = renderer.on_gpu(context).map_err(OpticsError::from)?;
-        }
+        let renderer = ImageFormation::new(&scene.sensor, &scene.optics, scene.seed, gpu)?;
         Ok(Simulator {
             targets: scene.frames(),
             scene,
@@ -151,8 +151,14 @@ impl Simulator {
         pose.position_mm.z -= fields.approach_offset_mm;
         self.previous_pose = Some(pose);
         let image_grid = self.scene.grid();
-        let rendered = if image_grid == grid {
-            self.renderer.render(&Surface {
+        let render = |surface: &Surface| {
+            (
+                self.renderer.render(surface, target.index),
+                self.renderer.marker_centres_px(surface),
+            )
+        };
+        let (image, markers_px) = if image_grid == grid {
+            render(&Surface {
                 grid,
                 ux_mm: &fields.ux_mm,
                 uy_mm: &fields.uy_mm,
@@ -161,14 +167,14 @@ impl Simulator {
         } else {
             let up = |v: &[f64]| upsample(v, grid, image_grid);
             let (ux, uy, uz) = (up(&fields.ux_mm), up(&fields.uy_mm), up(&fields.uz_mm));
-            self.renderer.render(&Surface {
+            render(&Surface {
                 grid: image_grid,
                 ux_mm: &ux,
                 uy_mm: &uy,
                 uz_mm: &uz,
             })
         };
-        let image = rendered.map_err(|e| SimError::Optics(e.into()))?;
+        let image = image?;
         let timings = StageTimes {
             gap_s: (gap_done - start).as_secs_f64(),
             contact_s: (contact_done - gap_done).as_secs_f64(),
@@ -178,6 +184,7 @@ impl Simulator {
             target,
             pose,
             image,
+            markers_px,
             fields,
             slip_state,
             contact_area_mm2,
