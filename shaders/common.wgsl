@@ -93,9 +93,11 @@ fn visibility(p: vec3<f32>, light: vec3<f32>) -> f32 {
     }
     let slope = rise / reach;
     let half_angle = atan(params.led_radius_mm / length(vec2<f32>(reach, rise)));
-    let clear_slope = slope - tan(half_angle);
+    // Occluder slopes up to tan(atan(slope) - half_angle) leave the whole LED in view.
+    let elevation = atan(slope);
+    let clear_slope = tan(elevation - half_angle);
     var march = min(reach, params.max_march_mm);
-    if (clear_slope > 0.0) {
+    if (elevation > half_angle) {
         march = min(march, (params.max_height_mm - p.z) / clear_slope);
     }
     if (march <= 0.0) {
