@@ -96,9 +96,9 @@ enum Command {
         /// CPU thread counts to time.
         #[arg(long = "threads-list", default_values = ["1", "2"])]
         threads: Vec<usize>,
-        /// Also time each model on the GPU.
-        #[arg(long)]
-        gpu: bool,
+        /// `gpu` or `auto` also time each model on the GPU (`auto`: if there is an adapter).
+        #[arg(long, value_enum, default_value = "cpu")]
+        device: dataset::DeviceArg,
     },
     /// Write a dataset in another project's layout.
     Export {
@@ -263,8 +263,8 @@ fn run(cli: Cli) -> Result<()> {
             calib,
             repeats,
             threads,
-            gpu,
-        } => optics::bench(&calib, repeats, &threads, gpu),
+            device,
+        } => optics::bench(&calib, repeats, &threads, device),
         Command::Verify { dir } => dataset::verify(&dir),
         Command::Calibrate {
             pack,

@@ -162,16 +162,18 @@ const TAXIM_640_MS: (f64, f64) = (499.0, 113.0);
 
 /// `sparsh bench-optics`: median time per frame of each model, with and without shadows, at
 /// 320×240 and 640×480 on each CPU thread count, against Taxim's CPU render at 640×480.
-pub fn bench(calib: &Path, repeats: usize, threads: &[usize], gpu: bool) -> Result<()> {
+pub fn bench(
+    calib: &Path,
+    repeats: usize,
+    threads: &[usize],
+    device: crate::dataset::DeviceArg,
+) -> Result<()> {
     use sparsh_optics::{PhotometricRenderer, Renderer, Surface, photometric::shadow_settings};
     anyhow::ensure!(repeats > 0, "--repeats must be at least 1");
     let calibration =
         sparsh_optics::Calibration::load(calib).map_err(|e| anyhow!("{}: {e}", calib.display()))?;
     let preset = sparsh_scene::SensorConfig::preset("gelsight2017").expect("shipped preset");
-    let gpu = match gpu {
-        true => Some(sparsh_optics::GpuContext::shared()?),
-        false => None,
-    };
+    let gpu = device.context()?;
     let median_ms = |renderer: &Renderer, surface: &Surface| -> Result<f64> {
         renderer.render(surface)?;
         let mut times = Vec::with_capacity(repeats);
