@@ -747,6 +747,11 @@ fn auto_solver_scene_renders() {
     ]);
     assert!(out.status.success(), "{}", stderr(&out));
     assert!(png.exists());
+    let said = stderr(&out);
+    assert!(
+        said.contains("solver = \"auto\" chose") && said.contains("mechanics_stride"),
+        "auto's choice is not reported: {said}"
+    );
 }
 
 /// The calibrated model as a scene option, with shadows, printed markers and seeded noise:

@@ -14,7 +14,9 @@ use sparsh_data::{
     Dataset, Identity, Label, Manifest, OpenMode, PoseLabel, SequencePart, encode_png, write_atomic,
 };
 use sparsh_optics::GpuContext;
-use sparsh_scene::{DatasetSpec, FieldName, OutputSpec, Precision, SequenceScene, SolverKind};
+use sparsh_scene::{
+    DatasetSpec, FieldName, OutputSpec, Precision, Scene, SequenceScene, SolverKind,
+};
 use sparsh_sim::{Frame, Simulator};
 
 /// `--shard K/N`: this run makes the sequences s with s mod N = K (K from 0).
@@ -94,7 +96,9 @@ pub fn render(
         );
     }
     let gpu = device.context()?;
-    let mut sim = Simulator::on_device(spec.sequence(sequence)?.scene, gpu.as_ref())?;
+    let scene = spec.sequence(sequence)?.scene;
+    announce_auto(scene_path, &scene);
+    let mut sim = Simulator::on_device(scene, gpu.as_ref())?;
     let count = sim.frame_count();
     if index >= count {
         bail!(
@@ -117,6 +121,32 @@ pub fn render(
         write_atomic(path, &exr_bytes(&frame.fields, &spec)?)?;
     }
     Ok(())
+}
+
+/// One line on stderr saying what `solver = "auto"` chose, and a warning when no studied rung
+/// is predicted to meet the tolerance (the most accurate one is used then).
+fn announce_auto(scene_path: &Path, scene: &Scene) {
+    let Some(choice) = &scene.auto else { return };
+    eprintln!(
+        "{}: solver = \"auto\" chose {} at mechanics_stride {} (contact radius ≈ {:.3} mm, \
+         a/h ≈ {:.3}; predicted force error {:.2} %, tolerance {:.2} %; {:.1} ms/frame in the study)",
+        scene_path.display(),
+        choice.solver.name(),
+        choice.mechanics_stride,
+        choice.contact_radius_mm,
+        choice.a_over_h,
+        100.0 * choice.predicted_rel_error,
+        100.0 * choice.tolerance,
+        choice.predicted_ms_per_frame,
+    );
+    if !choice.meets_tolerance() {
+        eprintln!(
+            "{}: warning: no studied rung and grid is predicted to meet tolerance = {}; \
+             using the most accurate one",
+            scene_path.display(),
+            choice.tolerance
+        );
+    }
 }
 
 /// What `generate` is asked to do.
@@ -205,6 +235,11 @@ pub fn generate(scene_path: &Path, out: &Path, options: GenerateOptions) -> Resu
         .iter()
         .map(|&s| spec.sequence(s))
         .collect::<Result<_, _>>()?;
+    if options.solver.is_none()
+        && let Some(seq) = sequences.first()
+    {
+        announce_auto(scene_path, &seq.scene);
+    }
     for seq in &mut sequences {
         let scene = &mut seq.scene;
         scene.solver = options.solver.unwrap_or(scene.solver);

@@ -95,6 +95,21 @@ pub fn garcia_bottom_effect(chi: f64) -> f64 {
     1.0 + chi * (1.133 + chi * (1.497 + chi * (1.469 + chi * 0.755)))
 }
 
+/// F/F_Hertz of a paraboloid on an incompressible bonded layer where a reference is known:
+/// Garcia & Garcia's fit for χ ≤ 0.5 (within 0.7 % of the exact Fourier-domain layer solution
+/// there), and that exact solution, 5.11, at χ = 1, where the published fits disagree (Garcia &
+/// Garcia 5.85, Dimitriadis et al. 4.28). `None` elsewhere.
+pub fn bonded_layer_force_factor(chi: f64) -> Option<f64> {
+    const EXACT_AT_CHI_1: f64 = 5.11;
+    if (0.0..=0.5).contains(&chi) {
+        Some(garcia_bottom_effect(chi))
+    } else if (chi - 1.0).abs() <= 1e-6 {
+        Some(EXACT_AT_CHI_1)
+    } else {
+        None
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

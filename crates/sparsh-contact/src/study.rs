@@ -2,7 +2,7 @@
 //!
 //! - **Accuracy study**: every rung × grid resolution (contact radius a in cells) × scene with an
 //!   analytic answer — Hertz, flat punch, cone (Sneddon), Cattaneo–Mindlin (tangential force) on a
-//!   thick gel (a/h = 0.002), and a sphere on incompressible bonded layers of a/h = 0.1 … 1 (Garcia
+//!   thick gel (a/h = 0.002), and a sphere on incompressible bonded layers of a/h = 0.01 … 1 (Garcia
 //!   & Garcia 2018) — timing each frame and comparing the force with the analytic one.
 //! - **Stability map**: per rung, one parameter at a time pushed towards where models break:
 //!   indentation depth over gel thickness, cone semi-angle down to 10° and a box edge, Poisson
@@ -373,7 +373,7 @@ fn mindlin(q_over_mu_p: f64) -> Case {
 }
 
 /// Bonded-layer contact radii over thickness of the accuracy study; 0.3 is held out of the table.
-const LAYER_A_OVER_H: [f64; 4] = [0.1, 0.3, 0.5, 1.0];
+const LAYER_A_OVER_H: [f64; 6] = [0.01, 0.03, 0.1, 0.3, 0.5, 1.0];
 
 /// Every scene has a 1 mm analytic contact radius (Hertz radius for the layers).
 fn analytic_scenes() -> Vec<AnalyticScene> {
@@ -445,7 +445,7 @@ struct SweepPoint {
 /// The reference names of the stability map, by check.
 fn reference_name(case: Option<&Case>) -> &'static str {
     match case.map(|c| c.check) {
-        Some(Check::BondedLayer) => "Garcia & Garcia bonded layer",
+        Some(Check::BondedLayer) => "bonded layer (Garcia & Garcia; exact solution at χ = 1)",
         Some(Check::Cone) => "Sneddon cone",
         Some(Check::Hertz) => "Hertz",
         Some(Check::CattaneoMindlin) => "Cattaneo-Mindlin tangential force",
@@ -465,8 +465,10 @@ fn stability_sweeps(cell_mm: f64) -> Vec<SweepPoint> {
             cell_mm,
         })
     };
-    // A 5 mm sphere on a 2 mm incompressible layer, pressed up to and past the layer's thickness.
-    for ratio in [0.01, 0.05, 0.1, 0.2, 0.4, 0.8, 1.2] {
+    // A 5 mm sphere on a 2 mm incompressible layer, pressed up to and past the layer's thickness:
+    // χ = √(Rδ)/h = √(2.5 δ/h) is 0.16, 0.35, 0.5 and 1, where the layer's force is known (see
+    // `reference::bonded_layer_force_factor`), and δ > h, which no rung may accept.
+    for ratio in [0.01, 0.05, 0.1, 0.4, 1.2] {
         let (radius, h) = (5.0, 2.0);
         let depth = ratio * h;
         let footprint = (2.0f64 * radius * depth - depth * depth).max(0.0).sqrt();

@@ -531,10 +531,16 @@ pub fn evaluate_case(scene: &Scene, case: &Case, grid: Grid) -> Result<Evaluatio
             let r = count(run(scene, scene.solver, grid, &[])?);
             let hertz_a = (radius_mm * r.approach_mm).sqrt();
             let chi = hertz_a / gel.thickness_mm;
+            let factor = reference::bonded_layer_force_factor(chi).ok_or_else(|| {
+                ContactError::OutOfValidity {
+                    solver: "bonded-layer reference",
+                    reason: format!("no reference at χ = {chi:.3}: known for χ ≤ 0.5 and at χ = 1"),
+                }
+            })?;
             vec![
                 v(
                     "force (N)",
-                    hertz.force_n(r.approach_mm) * reference::garcia_bottom_effect(chi),
+                    hertz.force_n(r.approach_mm) * factor,
                     r.fields.force_n[2],
                 ),
                 v("contact_radius (mm)", hertz_a, contact_radius_mm(&r.fields)),
