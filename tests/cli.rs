@@ -772,6 +772,7 @@ fn calibrated_model_with_markers_and_noise_is_deterministic() {
     let out = generate(&scene, &a, &["--threads", "1"]);
     assert!(out.status.success(), "{}", stderr(&out));
     assert!(generate(&scene, &b, &["--threads", "2"]).status.success());
+    assert_eq!(files_under(&a).len(), files_under(&b).len());
     for (x, y) in files_under(&a).iter().zip(&files_under(&b)) {
         assert!(
             std::fs::read(x).unwrap() == std::fs::read(y).unwrap(),

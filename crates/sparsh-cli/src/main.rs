@@ -74,10 +74,10 @@ enum Command {
         /// Scene file (TOML); its output settings decide what is written.
         scene: PathBuf,
         /// Solver rungs to compare; the first is the baseline of the ratios.
-        #[arg(long = "solver", default_values = ["geometric", "halfspace", "layered"])]
+        #[arg(long = "solver", default_values = ["geometric", "halfspace", "layered"], num_args = 1..)]
         solvers: Vec<sparsh_scene::SolverKind>,
         /// Mechanics strides to compare (pixels per contact cell).
-        #[arg(long = "stride", default_values = ["1", "2", "4"])]
+        #[arg(long = "stride", default_values = ["1", "2", "4"], num_args = 1..)]
         strides: Vec<usize>,
         /// Where images are formed: `cpu`, `gpu` (wgpu; an error without an adapter) or `auto`
         /// (the GPU if there is one, else the CPU).
@@ -94,7 +94,7 @@ enum Command {
         #[arg(long, default_value_t = 15)]
         repeats: usize,
         /// CPU thread counts to time.
-        #[arg(long = "threads-list", default_values = ["1", "2"])]
+        #[arg(long = "threads-list", default_values = ["1", "2"], num_args = 1..)]
         threads: Vec<usize>,
         /// `gpu` or `auto` also time each model on the GPU (`auto`: if there is an adapter).
         #[arg(long, value_enum, default_value = "cpu")]
@@ -315,5 +315,47 @@ fn run(cli: Cli) -> Result<()> {
             resume,
             max_steps,
         } => pretrain::pretrain(&config, data, out, resume, max_steps),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// List options take several values after one flag, as the README shows them.
+    #[test]
+    fn list_options_take_several_values() {
+        let cli = Cli::try_parse_from(["sparsh", "bench-optics", "--threads-list", "1", "2"])
+            .expect("parses");
+        let Command::BenchOptics { threads, .. } = cli.command else {
+            panic!("bench-optics");
+        };
+        assert_eq!(threads, [1, 2]);
+        let cli = Cli::try_parse_from([
+            "sparsh",
+            "bench",
+            "s.toml",
+            "--solver",
+            "halfspace",
+            "layered",
+            "--stride",
+            "2",
+            "4",
+        ])
+        .expect("parses");
+        let Command::Bench {
+            solvers, strides, ..
+        } = cli.command
+        else {
+            panic!("bench");
+        };
+        assert_eq!(
+            solvers,
+            [
+                sparsh_scene::SolverKind::Halfspace,
+                sparsh_scene::SolverKind::Layered
+            ]
+        );
+        assert_eq!(strides, [2, 4]);
     }
 }

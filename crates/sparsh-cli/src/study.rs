@@ -58,7 +58,7 @@ pub fn study(out: &Path, quick: bool, table: Option<&Path>) -> Result<()> {
         &ErrorVsTime {
             study: &study,
             keep: &|p: &StudyPoint| !half_space(p),
-            title: "Force error against time per frame: sphere on bonded layers, a/h = 0.1 … 1",
+            title: "Force error against time per frame: sphere on bonded layers, a/h = 0.01 … 1",
         },
     )?;
     for rung in SolverKind::ALL {

@@ -98,7 +98,10 @@ pub fn garcia_bottom_effect(chi: f64) -> f64 {
 /// F/F_Hertz of a paraboloid on an incompressible bonded layer where a reference is known:
 /// Garcia & Garcia's fit for χ ≤ 0.5 (within 0.7 % of the exact Fourier-domain layer solution
 /// there), and that exact solution, 5.11, at χ = 1, where the published fits disagree (Garcia &
-/// Garcia 5.85, Dimitriadis et al. 4.28). `None` elsewhere.
+/// Garcia 5.85, Dimitriadis et al. 4.28). The 5.11 (with 1.518 at χ = 0.3 and 2.156 at 0.5) is
+/// an independent numerical solution of the Carbone & Mangialardi layer compliance (eq. A.30),
+/// converged in grid and box size at ν = 0.4999, made outside this crate's solvers. `None`
+/// elsewhere.
 pub fn bonded_layer_force_factor(chi: f64) -> Option<f64> {
     const EXACT_AT_CHI_1: f64 = 5.11;
     if (0.0..=0.5).contains(&chi) {

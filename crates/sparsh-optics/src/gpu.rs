@@ -21,18 +21,6 @@ const CALIBRATED_WGSL: &str = include_str!("../../../shaders/calibrated.wgsl");
 /// Workgroup edge of the shaders (`@workgroup_size(8, 8)`).
 const WORKGROUP: u32 = 8;
 
-/// Where images are formed.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
-pub enum Device {
-    /// On the CPU (rayon).
-    #[default]
-    Cpu,
-    /// On a GPU adapter through wgpu; an error if there is none.
-    Gpu,
-    /// On a GPU adapter if there is one, else on the CPU.
-    Auto,
-}
-
 /// GPU failures.
 #[derive(Debug, Clone, thiserror::Error)]
 pub enum GpuError {

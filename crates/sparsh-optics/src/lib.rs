@@ -17,7 +17,7 @@ use image::RgbImage;
 use sparsh_scene::{Grid, MarkerGrid, OpticsModel, OpticsSpec, SensorConfig};
 
 pub use calibrated::{CalibratedRenderer, Calibration, ColourMap};
-pub use gpu::{Device, GpuContext, GpuError, GpuRenderer};
+pub use gpu::{GpuContext, GpuError, GpuRenderer};
 pub use pack::{CalibrationPack, PackError};
 pub use photometric::PhotometricRenderer;
 

@@ -479,7 +479,7 @@ impl FamilyFile {
                 *value = range.sample(&mut rng);
             }
         }
-        optics.resolve(path, &format!("{at}.optics"))?;
+        optics.resolve(path, &format!("{at}.optics"), sensor.lights.len())?;
         let d = Gel::default();
         let g = &self.gel;
         let gel = Gel {

@@ -388,8 +388,8 @@ impl Scene {
     pub fn parse(path: &Path, source: String) -> Result<Scene, SceneError> {
         let mut file: SceneFile =
             toml::from_str(&source).map_err(|e| SceneError::from_toml(path, &source, e))?;
-        file.optics.resolve(path, "optics")?;
         let sensor = file.sensor.resolve(path)?;
+        file.optics.resolve(path, "optics", sensor.lights.len())?;
         if let Some(stride) = file.mechanics_stride {
             check_stride(path, "mechanics_stride", stride, &sensor)?;
         }

@@ -71,9 +71,14 @@ impl Default for OpticsSpec {
 }
 
 impl OpticsSpec {
-    /// Checks every value and resolves the calibration path against `path`'s folder; errors
-    /// name the key under `table`.
-    pub(crate) fn resolve(&mut self, path: &Path, table: &str) -> Result<(), SceneError> {
+    /// Checks every value against a sensor with `lights` lights and resolves the calibration
+    /// path against `path`'s folder; errors name the key under `table`.
+    pub(crate) fn resolve(
+        &mut self,
+        path: &Path,
+        table: &str,
+        lights: usize,
+    ) -> Result<(), SceneError> {
         let bad = |field: &str, msg: String| {
             Err(SceneError::invalid(path, format!("{table}.{field}"), msg))
         };
@@ -96,6 +101,12 @@ impl OpticsSpec {
                 self.calibration = Some(full);
             }
             _ => {}
+        }
+        if self.shadows && lights == 0 {
+            return bad(
+                "shadows",
+                "the sensor has no lights to cast shadows from".into(),
+            );
         }
         if !(1..=1024).contains(&self.shadow_steps) {
             return bad(

@@ -396,6 +396,12 @@ fn bad_optics_sections_are_named() {
     assert!(line.contains("optics.noise_std"), "{line}");
     let line = error_of(&format!("{BASE}[optics]\nshadow_steps = 0\n"));
     assert!(line.contains("optics.shadow_steps"), "{line}");
+    let dark = BASE.replace("height_px = 48\n", "height_px = 48\nlights = []\n");
+    let line = error_of(&format!("{dark}[optics]\nshadows = true\n"));
+    assert!(
+        line.contains("optics.shadows") && line.contains("no lights"),
+        "{line}"
+    );
     let line = error_of(&format!("{BASE}[optics]\nmodel = \"raytraced\"\n"));
     assert!(line.contains("raytraced"), "{line}");
 }
