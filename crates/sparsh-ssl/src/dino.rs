@@ -264,6 +264,7 @@ impl Dino {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::train::seeded;
     use crate::vit::VitConfig;
 
     /// Mean entropy (nats) of the centred, sharpened teacher distribution of a batch.
@@ -288,20 +289,24 @@ mod tests {
                 .with_num_prototypes(k)
                 .with_head_batch_norm(bn)
         };
-        let common = Tensor::<2>::random(
-            [1, 32],
-            burn::tensor::Distribution::Normal(0.0, 1.0),
-            &device,
-        );
-        let x = common.expand([16, 32])
-            + Tensor::<2>::random(
-                [16, 32],
-                burn::tensor::Distribution::Normal(0.0, 1e-3),
+        let (plain, normed) = seeded(&device, 5, || {
+            let common = Tensor::<2>::random(
+                [1, 32],
+                burn::tensor::Distribution::Normal(0.0, 1.0),
                 &device,
             );
+            let x = common.expand([16, 32])
+                + Tensor::<2>::random(
+                    [16, 32],
+                    burn::tensor::Distribution::Normal(0.0, 1e-3),
+                    &device,
+                );
+            (
+                teacher_entropy(&cfg(false).head(&device), x.clone()),
+                teacher_entropy(&cfg(true).head(&device), x),
+            )
+        });
         let uniform = (k as f64).ln();
-        let plain = teacher_entropy(&cfg(false).head(&device), x.clone());
-        let normed = teacher_entropy(&cfg(true).head(&device), x);
         assert!(
             plain > uniform - 0.01,
             "plain head: entropy {plain} vs ln K {uniform}"
@@ -315,23 +320,26 @@ mod tests {
     #[test]
     fn gradients_reach_the_student_and_not_the_teacher() {
         let device = Device::flex().autodiff();
-        let dino = DinoConfig::new(
-            VitConfig::new([16, 16], 8)
-                .with_embed_dim(32)
-                .with_depth(1)
-                .with_num_heads(4)
-                .with_num_registers(1),
-        )
-        .with_head_hidden(32)
-        .with_head_bottleneck(16)
-        .with_num_prototypes(64)
-        .with_head_batch_norm(true)
-        .init(&device);
-        let x = Tensor::<5>::random(
-            [4, 1, 6, 16, 16],
-            burn::tensor::Distribution::Default,
-            &device,
-        );
+        let (dino, x) = seeded(&device, 6, || {
+            let dino = DinoConfig::new(
+                VitConfig::new([16, 16], 8)
+                    .with_embed_dim(32)
+                    .with_depth(1)
+                    .with_num_heads(4)
+                    .with_num_registers(1),
+            )
+            .with_head_hidden(32)
+            .with_head_bottleneck(16)
+            .with_num_prototypes(64)
+            .with_head_batch_norm(true)
+            .init(&device);
+            let x = Tensor::<5>::random(
+                [4, 1, 6, 16, 16],
+                burn::tensor::Distribution::Default,
+                &device,
+            );
+            (dino, x)
+        });
         let all: Vec<usize> = (0..4).collect();
         let views = DinoViews {
             global: vec![vec![all.clone(); 4], vec![all.clone(); 4]],
