@@ -737,14 +737,7 @@ fn auto_solver_scene_renders() {
         ),
     );
     let png = tmp.path().join("f.png");
-    let out = sparsh(&[
-        "render",
-        scene.to_str().unwrap(),
-        "--frame",
-        "7",
-        "--out",
-        png.to_str().unwrap(),
-    ]);
+    let out = render_on(&scene, &png, "cpu", None);
     assert!(out.status.success(), "{}", stderr(&out));
     assert!(png.exists());
     let said = stderr(&out);
@@ -772,14 +765,7 @@ fn calibrated_model_with_markers_and_noise_is_deterministic() {
     let out = generate(&scene, &a, &["--threads", "1"]);
     assert!(out.status.success(), "{}", stderr(&out));
     assert!(generate(&scene, &b, &["--threads", "2"]).status.success());
-    assert_eq!(files_under(&a).len(), files_under(&b).len());
-    for (x, y) in files_under(&a).iter().zip(&files_under(&b)) {
-        assert!(
-            std::fs::read(x).unwrap() == std::fs::read(y).unwrap(),
-            "{}",
-            x.display()
-        );
-    }
+    assert_same_tree(&a, &b);
     let labels = std::fs::read_to_string(a.join("labels.jsonl")).unwrap();
     let first: serde_json::Value = serde_json::from_str(labels.lines().next().unwrap()).unwrap();
     let markers = first["markers_px"].as_array().unwrap();
