@@ -92,12 +92,12 @@ fn visibility(p: vec3<f32>, light: vec3<f32>) -> f32 {
         return 1.0;
     }
     let slope = rise / reach;
-    let half_angle = atan(params.led_radius_mm / length(vec2<f32>(reach, rise)));
-    // Occluder slopes up to tan(atan(slope) - half_angle) leave the whole LED in view.
-    let elevation = atan(slope);
-    let clear_slope = tan(elevation - half_angle);
+    // tan of the LED's angular radius; occluder slopes up to
+    // m_c = tan(atan(slope) - α) = (slope - tan α)/(1 + slope·tan α) leave the whole LED in view.
+    let tan_half_angle = params.led_radius_mm / length(vec2<f32>(reach, rise));
     var march = min(reach, params.max_march_mm);
-    if (elevation > half_angle) {
+    if (slope > tan_half_angle) {
+        let clear_slope = (slope - tan_half_angle) / (1.0 + slope * tan_half_angle);
         march = min(march, (params.max_height_mm - p.z) / clear_slope);
     }
     if (march <= 0.0) {
@@ -112,6 +112,7 @@ fn visibility(p: vec3<f32>, light: vec3<f32>) -> f32 {
         occluder = max(occluder, (h - p.z) / t);
     }
     let clearance = atan(slope) - atan(occluder);
+    let half_angle = atan(tan_half_angle);
     if (half_angle > 0.0) {
         return clamp(0.5 + 0.5 * clearance / half_angle, 0.0, 1.0);
     }

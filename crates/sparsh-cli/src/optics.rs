@@ -156,9 +156,11 @@ pub fn sim2real(pack_path: &Path, calib: &Path, options: Sim2realOptions) -> Res
     Ok(())
 }
 
-/// Taxim 1.4.1's CPU render of one 640×480 frame on this machine (JAX CPU backend; median of 10
-/// after warm-up, idle machine): with shadows, without.
-const TAXIM_640_MS: (f64, f64) = (499.0, 113.0);
+/// Taxim 1.4.1's CPU render of one 640×480 frame of the same ball press on the 2-core machine
+/// the README's figures come from (JAX CPU on both cores; median of 10 after a warm-up, idle
+/// machine; `crates/sparsh-optics/benches/taxim_render.py` re-measures it): with shadows,
+/// without.
+const TAXIM_640_MS: (f64, f64) = (595.2, 120.8);
 
 /// `sparsh bench-optics`: median time per frame of each model, with and without shadows, at
 /// 320×240 and 640×480 on each CPU thread count, against Taxim's CPU render at 640×480.
@@ -250,7 +252,7 @@ pub fn bench(
         }
     }
     println!(
-        "Taxim 1.4.1, JAX CPU, 640×480 on this machine: {} ms with shadows, {} ms without.",
+        "Taxim 1.4.1, JAX CPU, 640×480 (benches/taxim_render.py on the README machine): {} ms with shadows, {} ms without.",
         TAXIM_640_MS.0, TAXIM_640_MS.1
     );
     Ok(())

@@ -33,8 +33,8 @@ pub fn pretrain(
     let summary = run(&recipe, &opts, &mut |r| {
         if let Some(p) = r.probe {
             probe_msg = format!(
-                " probe {:.1} mN (mean {:.1}, feature std {:.3})",
-                p.rmse_mn, p.baseline_mn, p.feature_std
+                " probe {:.1} mN (linear {:.1}, mean {:.1}, feature std {:.3})",
+                p.rmse_mn, p.linear_mn, p.baseline_mn, p.feature_std
             );
         }
         if r.loss.is_finite() {
@@ -52,8 +52,8 @@ pub fn pretrain(
     );
     if let (Some(a), Some(b)) = (summary.probe_initial, summary.probe_final) {
         println!(
-            "force probe RMSE: random init {:.1} mN, pretrained {:.1} mN (predicting the mean: {:.1} mN)",
-            a.rmse_mn, b.rmse_mn, b.baseline_mn
+            "force probe RMSE: random init {:.1} mN, pretrained {:.1} mN (linear read-out {:.1} / {:.1} mN; predicting the mean: {:.1} mN)",
+            a.rmse_mn, b.rmse_mn, a.linear_mn, b.linear_mn, b.baseline_mn
         );
     }
     println!("log: {}", out.join("log.csv").display());

@@ -18,6 +18,7 @@
 //! frame_offsets = [0, 5]       # I_t ⊕ I_{t−5}
 //! [log]
 //! probe_every = 250
+//! probe_epochs = 30            # attentive probe; 0: ridge read-out only
 //! ```
 
 use std::path::Path;
@@ -257,6 +258,8 @@ pub struct LogSection {
     pub probe_every: usize,
     /// Labelled samples used by the probe at most.
     pub probe_max_samples: usize,
+    /// Training epochs of the attentive probe (0: the linear read-out only).
+    pub probe_epochs: usize,
 }
 
 impl Default for LogSection {
@@ -265,6 +268,7 @@ impl Default for LogSection {
             checkpoint_every: 100,
             probe_every: 250,
             probe_max_samples: 512,
+            probe_epochs: 40,
         }
     }
 }
