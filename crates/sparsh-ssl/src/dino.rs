@@ -35,6 +35,10 @@ pub struct DinoConfig {
     /// Batch normalization after the two hidden layers of the head (DINO's `use_bn_in_head`).
     #[config(default = false)]
     pub head_batch_norm: bool,
+    /// Weight of the KoLeo term on the student's global-view `[cls]` features (DINOv2: 0.1;
+    /// DINO: 0).
+    #[config(default = 0.0)]
+    pub koleo_weight: f64,
 }
 
 /// Batch normalization of a head layer with the batch's own statistics (the head only runs in
@@ -129,6 +133,9 @@ pub struct Dino {
     /// Centre momentum.
     #[module(skip)]
     pub center_momentum: f64,
+    /// Weight of the KoLeo term.
+    #[module(skip)]
+    pub koleo_weight: f64,
 }
 
 impl DinoConfig {
@@ -174,8 +181,31 @@ impl DinoConfig {
                 .set_require_grad(false),
             student_temp: self.student_temp,
             center_momentum: self.center_momentum,
+            koleo_weight: self.koleo_weight,
         }
     }
+}
+
+/// KoLeo regularizer (Sablayrolles et al. 2019, as in DINOv2): −mean_i ln(min_{j≠i} ‖x̂_i − x̂_j‖)
+/// over the L2-normalized rows x̂ of `x`; it grows without bound as rows coincide, so it pushes a
+/// collapsing batch apart.
+///
+/// # Shapes
+/// - `x`: `[batch, dim]` (batch ≥ 2) → `[1]`
+pub fn koleo(x: Tensor<2>) -> Tensor<1> {
+    let [n, _] = x.dims();
+    let device = x.device();
+    let norm = x.clone().powi_scalar(2).sum_dim(1).sqrt().clamp_min(1e-12);
+    let unit = x / norm;
+    // ‖x̂_i − x̂_j‖² = 2 − 2 x̂_i·x̂_j; the diagonal is lifted out of the minimum
+    let dist2 = unit
+        .clone()
+        .matmul(unit.transpose())
+        .mul_scalar(-2.0)
+        .add_scalar(2.0)
+        + Tensor::<2>::eye(n, &device).mul_scalar(8.0);
+    let nearest = dist2.min_dim(1).clamp_min(1e-16).sqrt();
+    nearest.add_scalar(1e-8).log().mean().neg()
 }
 
 fn cls(vit: &Vit, tokens: Tensor<3>, views: &[Vec<Vec<usize>>]) -> Tensor<2> {
@@ -196,6 +226,7 @@ impl Dino {
     /// ```text
     /// P_t = softmax((t − c) / τ_t),  log P_s = log_softmax(s / τ_s)
     /// loss = mean_{i ∈ global, v ≠ i} mean_batch( −Σ_k P_t,i · log P_s,v )
+    ///        + koleo_weight · mean_{i ∈ global} KoLeo(student [cls] of view i)
     /// ```
     ///
     /// # Shapes
@@ -217,9 +248,8 @@ impl Dino {
             .detach();
         let t_mean = t_out.clone().mean_dim(0);
         let t_prob = softmax((t_out - self.center.val()).div_scalar(teacher_temp), 1);
-        let s_global = self
-            .head
-            .forward(cls(&self.encoder, student_tokens.clone(), &views.global));
+        let s_cls = cls(&self.encoder, student_tokens.clone(), &views.global);
+        let s_global = self.head.forward(s_cls.clone());
         let mut s_all = vec![s_global];
         if !views.local.is_empty() {
             s_all.push(
@@ -243,7 +273,13 @@ impl Dino {
                 pairs += 1;
             }
         }
-        let loss = total.expect("at least two views").div_scalar(pairs as f64);
+        let mut loss = total.expect("at least two views").div_scalar(pairs as f64);
+        if self.koleo_weight > 0.0 {
+            for i in 0..g {
+                let term = koleo(s_cls.clone().narrow(0, i * b, b));
+                loss = loss + term.mul_scalar(self.koleo_weight / g as f64);
+            }
+        }
         (loss, t_mean)
     }
 
@@ -266,6 +302,27 @@ mod tests {
     use super::*;
     use crate::train::seeded;
     use crate::vit::VitConfig;
+
+    /// KoLeo: −ln 2 for two antipodal unit vectors (distance 2); large for a nearly collapsed
+    /// batch, and one gradient step on it lowers it (spreads the batch).
+    #[test]
+    fn koleo_is_the_log_nearest_distance_and_spreads_a_collapsed_batch() {
+        let device = Device::flex();
+        let apart = Tensor::<1>::from_floats([1.0, 0.0, -1.0, 0.0], &device).reshape([2, 2]);
+        let k = koleo(apart).into_scalar::<f32>() as f64;
+        assert!((k + 2f64.ln()).abs() < 1e-5, "{k}");
+        let ad = Device::flex().autodiff();
+        let close = Tensor::<1>::from_floats([1.0, 0.0, 1.0, 0.01, 1.0, -0.01, 1.0, 0.02], &ad)
+            .reshape([4, 2])
+            .require_grad();
+        let before = koleo(close.clone());
+        assert!(before.clone().into_scalar::<f32>() > 3.0);
+        let start = koleo(close.clone().inner()).into_scalar::<f32>();
+        let grad = before.backward();
+        let g = close.grad(&grad).expect("gradient");
+        let after = koleo(close.inner() - g.mul_scalar(1e-5)).into_scalar::<f32>();
+        assert!(after < start, "{after} vs {start}");
+    }
 
     /// Mean entropy (nats) of the centred, sharpened teacher distribution of a batch.
     fn teacher_entropy(head: &DinoHead, x: Tensor<2>) -> f64 {

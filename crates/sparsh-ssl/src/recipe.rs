@@ -127,6 +127,8 @@ pub struct DinoSection {
     pub head_batch_norm: bool,
     /// Teacher EMA momentum: start, end (linear over the run; official fixed 0.998).
     pub ema: [f64; 2],
+    /// Weight of DINOv2's KoLeo term on the student's `[cls]` features (official DINO: 0).
+    pub koleo_weight: f64,
     /// Views.
     pub views: DinoViewConfig,
 }
@@ -143,6 +145,7 @@ impl Default for DinoSection {
             center_momentum: 0.9,
             head_batch_norm: false,
             ema: [0.998, 0.998],
+            koleo_weight: 0.0,
             views: DinoViewConfig::default(),
         }
     }
@@ -416,6 +419,12 @@ impl Recipe {
                 if self.dino.views.num_global < 2 {
                     return bad("dino.views.num_global must be at least 2".into());
                 }
+                let w = self.dino.koleo_weight;
+                if !(w.is_finite() && w >= 0.0) || (w > 0.0 && self.optim.batch_size < 2) {
+                    return bad(format!(
+                        "dino.koleo_weight must be ≥ 0 (and needs batch_size ≥ 2), got {w}"
+                    ));
+                }
             }
             ObjectiveKind::Ijepa | ObjectiveKind::Vjepa => {
                 let j = &self.jepa;
@@ -456,7 +465,8 @@ impl Recipe {
             .with_num_prototypes(d.num_prototypes)
             .with_student_temp(d.student_temp)
             .with_center_momentum(d.center_momentum)
-            .with_head_batch_norm(d.head_batch_norm))
+            .with_head_batch_norm(d.head_batch_norm)
+            .with_koleo_weight(d.koleo_weight))
     }
 
     /// I-JEPA / V-JEPA configuration.
@@ -512,6 +522,11 @@ mod tests {
         assert!(e.contains("img_size") && !e.contains('\n'), "{e}");
         let e = Recipe::parse(&BASE.replace("mae", "dino")).unwrap_err();
         assert!(e.contains("num_registers"), "{e}");
+        let dino = BASE
+            .replace("mae", "dino")
+            .replace("patch_size = 8\n", "patch_size = 8\nnum_registers = 1\n");
+        let e = Recipe::parse(&format!("{dino}[dino]\nkoleo_weight = -0.1\n")).unwrap_err();
+        assert!(e.contains("dino.koleo_weight") && !e.contains('\n'), "{e}");
         let e = Recipe::parse(&BASE.replace("mae", "simclr")).unwrap_err();
         assert!(e.contains("simclr") || e.contains("variant"), "{e}");
     }
