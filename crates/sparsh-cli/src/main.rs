@@ -203,6 +203,23 @@ enum Command {
         #[arg(long)]
         max_steps: Option<usize>,
     },
+    /// Force probe of an encoder against the recipe's randomly initialised one, over several
+    /// probe seeds.
+    Probe {
+        /// Recipe (TOML) whose encoder shape, data stacking and `[log]` probe settings apply.
+        #[arg(long)]
+        config: PathBuf,
+        /// Labelled dataset directory; repeat for several.
+        #[arg(long, required = true)]
+        data: Vec<PathBuf>,
+        /// Encoder weights (safetensors, e.g. runs/NAME/encoder.safetensors); without it only
+        /// the random encoder is probed.
+        #[arg(long)]
+        encoder: Option<PathBuf>,
+        /// Probe seeds 0..N.
+        #[arg(long, default_value_t = 3)]
+        seeds: u64,
+    },
 }
 
 fn main() -> ExitCode {
@@ -315,6 +332,12 @@ fn run(cli: Cli) -> Result<()> {
             resume,
             max_steps,
         } => pretrain::pretrain(&config, data, out, resume, max_steps),
+        Command::Probe {
+            config,
+            data,
+            encoder,
+            seeds,
+        } => pretrain::probe(&config, &data, encoder.as_deref(), seeds),
     }
 }
 

@@ -227,6 +227,44 @@ impl Trainee {
     }
 }
 
+/// Scores the force probes of `recipe` on `data` for the recipe's randomly initialised encoder
+/// and, when given, the encoder weights in `encoder` (safetensors, official key names), once per
+/// probe seed in `seeds`: `(random init, loaded)` per seed. Errors when the data carry no force
+/// labels.
+pub fn probe_encoders(
+    recipe: &Recipe,
+    data: &[PathBuf],
+    encoder: Option<&Path>,
+    seeds: &[u64],
+) -> Result<Vec<(ProbeScore, Option<ProbeScore>)>, Error> {
+    recipe.validate()?;
+    let sampler = Sampler::new(Arc::new(load_data(recipe, data)?), recipe.stacking())?;
+    let first = data.first().map_or(Path::new("."), PathBuf::as_path);
+    let set = ProbeSet::new(
+        &sampler,
+        recipe.log.probe_max_samples,
+        recipe.optim.batch_size,
+    )
+    .ok_or_else(|| Error::file(first, "no force labels to probe (need 10 labelled frames)"))?;
+    // initialised as a run initialises it, on the autodiff device
+    let device = Device::flex().autodiff();
+    let random = Trainee::init(recipe, &device)?.encoder().clone();
+    let loaded = match encoder {
+        Some(path) => Some(crate::weights::load_encoder(random.clone(), path, None)?),
+        None => None,
+    };
+    let epochs = recipe.log.probe_epochs;
+    Ok(seeds
+        .iter()
+        .map(|&seed| {
+            (
+                set.score(&random, epochs, seed),
+                loaded.as_ref().map(|e| set.score(e, epochs, seed)),
+            )
+        })
+        .collect())
+}
+
 /// The AdamW optimizer of a recipe.
 pub fn optimizer(recipe: &Recipe) -> burn::optim::ModuleOptimizer {
     AdamWConfig::new()

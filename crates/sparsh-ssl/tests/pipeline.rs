@@ -6,7 +6,7 @@ use std::path::Path;
 use image::{Rgb, RgbImage};
 use sparsh_ssl::data::Dataset;
 use sparsh_ssl::recipe::Recipe;
-use sparsh_ssl::train::{RunOptions, run, seeded};
+use sparsh_ssl::train::{RunOptions, probe_encoders, run, seeded};
 use sparsh_ssl::weights::{load_encoder, save_encoder};
 
 /// burn's random generator is process-wide and parameters draw from it when first used, so
@@ -167,6 +167,64 @@ fn pickle_layout_loads_as_sequences() {
             .iter()
             .take(32 * 24)
             .any(|&v| v > 0.6)
+    );
+}
+
+/// The standalone probe (`sparsh probe`) of a finished run's encoder, with the recipe's seed,
+/// reproduces the probe rows the run logged at step 0 (random init) and at its end.
+#[test]
+fn standalone_probe_reproduces_the_logged_probe() {
+    let _serial = serial();
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("data");
+    write_generated(&data, 5, 8);
+    let r = recipe(4);
+    let out = tmp.path().join("run");
+    let opts = RunOptions {
+        data: vec![data.clone()],
+        out: out.clone(),
+        resume: false,
+        max_steps: None,
+    };
+    let summary = run(&r, &opts, &mut |_| {}).unwrap();
+    let rows = probe_encoders(
+        &r,
+        &[data.clone()],
+        Some(&out.join("encoder.safetensors")),
+        &[r.seed],
+    )
+    .unwrap();
+    let (random, trained) = rows[0];
+    let logged = (summary.probe_initial.unwrap(), summary.probe_final.unwrap());
+    assert_eq!(random.rmse_mn, logged.0.rmse_mn);
+    assert_eq!(random.linear_mn, logged.0.linear_mn);
+    assert_eq!(trained.unwrap().rmse_mn, logged.1.rmse_mn);
+    assert_eq!(trained.unwrap().linear_mn, logged.1.linear_mn);
+    // data without force labels (a Sparsh pickle) cannot be probed: one line naming the
+    // directory
+    let unlabelled = tmp.path().join("unlabelled");
+    std::fs::create_dir_all(&unlabelled).unwrap();
+    let frames: Vec<serde_pickle::Value> = (0..12)
+        .map(|t| {
+            let mut buf = std::io::Cursor::new(Vec::new());
+            frame(10.0 + t as f64, 12.0, 60.0)
+                .write_to(&mut buf, image::ImageFormat::Jpeg)
+                .unwrap();
+            serde_pickle::Value::Bytes(buf.into_inner())
+        })
+        .collect();
+    let pickle = serde_pickle::value_to_vec(
+        &serde_pickle::Value::List(frames),
+        serde_pickle::SerOptions::new(),
+    )
+    .unwrap();
+    std::fs::write(unlabelled.join("dataset_0.pkl"), pickle).unwrap();
+    let err = probe_encoders(&r, &[unlabelled], None, &[0])
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("unlabelled") && err.contains("force labels"),
+        "{err}"
     );
 }
 
