@@ -189,7 +189,7 @@ fn standalone_probe_reproduces_the_logged_probe() {
     let summary = run(&r, &opts, &mut |_| {}).unwrap();
     let rows = probe_encoders(
         &r,
-        &[data.clone()],
+        std::slice::from_ref(&data),
         Some(&out.join("encoder.safetensors")),
         &[r.seed],
     )
