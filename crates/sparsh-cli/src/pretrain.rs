@@ -63,7 +63,10 @@ pub fn pretrain(
 /// `sparsh probe`: the recipe's force probes (attentive and ridge, RMSE in mN on held-out
 /// sequences) on its random encoder and on `encoder`, one row per probe seed and their mean.
 pub fn probe(config: &Path, data: &[PathBuf], encoder: Option<&Path>, seeds: u64) -> Result<()> {
-    anyhow::ensure!(seeds > 0, "--seeds must be at least 1");
+    anyhow::ensure!(
+        (1..=100).contains(&seeds),
+        "--seeds must be 1 to 100, got {seeds}"
+    );
     let recipe = Recipe::load(config)?;
     let seeds: Vec<u64> = (0..seeds).collect();
     let rows = probe_encoders(&recipe, data, encoder, &seeds)?;

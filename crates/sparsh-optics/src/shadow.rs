@@ -141,7 +141,8 @@ impl HeightField {
 }
 
 /// Visible fraction (0–1) of a light at `light` = (x, y, height) mm from the surface point
-/// `p` = (x, y, height) mm over the height field (see the module doc for the formula).
+/// `p` = (x, y, height) mm over the height field (see the module doc for the formula). `p` must
+/// be a cell centre with the field's height there (the slope bound measures rises from it).
 ///
 /// Exact shortcuts first: occluder slopes up to m_c = tan(atan r − α) leave the whole LED in
 /// view (v = 1). Points of the ray up to t lie within half a tile of probes at t_j = (j + ½)·Δ
@@ -221,8 +222,8 @@ fn visibility(
             let b = (fy >> field.tile_shift) * field.tiles[0] + (fx >> field.tile_shift);
             rise_rate = rise_rate.max(slope_along(b));
             let t = s * tile_mm;
-            if rise_rate > lit_rate && field.block_max_mm[b] > p[2] + dt.max(t - tile_mm / 2.0) * m
-            {
+            let cone = p[2] + dt.max(t - tile_mm / 2.0) * lit_rate;
+            if rise_rate > lit_rate && field.block_max_mm[b] > cone {
                 lo = lo.min(t - tile_mm / 2.0);
                 hi = hi.max(t + tile_mm / 2.0);
             }
@@ -232,7 +233,12 @@ fn visibility(
         }
     }
     let first = ((lo / dt).ceil() as u32).max(1);
-    let last = ((hi / dt).floor() as u32).min(settings.steps);
+    // the march's own end is sample `steps` (march / dt may round below it)
+    let last = if hi >= march {
+        settings.steps
+    } else {
+        ((hi / dt).floor() as u32).min(settings.steps)
+    };
     let mut occluder = f64::NEG_INFINITY;
     for k in first..=last {
         let t = k as f64 * dt;
@@ -437,7 +443,7 @@ mod tests {
         (lit, shadowed)
     }
 
-    /// The tile shortcut changes nothing: every cell's visibility equals the full march's,
+    /// The tile shortcuts change nothing: every cell's visibility equals the full march's,
     /// over bumps of several sizes lit from several sides.
     #[test]
     fn the_tile_shortcut_is_exact() {
@@ -450,8 +456,16 @@ mod tests {
             })
             .collect();
         let lights = [[9.0, 2.0, 2.5], [-7.0, -3.0, 1.5], [0.5, 9.0, 4.0]];
-        let (skipped, _) = assert_shortcuts_exact(&uz, GRID, &lights, ShadowSettings::default());
-        assert!(skipped > 1000 && skipped < 3 * GRID.len(), "{skipped}");
+        let (lit, _) = assert_shortcuts_exact(&uz, GRID, &lights, ShadowSettings::default());
+        assert!(lit > 1000 && lit < 3 * GRID.len(), "{lit}");
+        // an odd step count with marches cut short by max_march_mm (the last sample counts)
+        let odd = ShadowSettings {
+            steps: 7,
+            max_march_mm: 1.3,
+            led_radius_mm: 0.5,
+        };
+        let (lit, shadowed) = assert_shortcuts_exact(&uz, GRID, &lights, odd);
+        assert!(lit > 1000 && shadowed > 100, "{lit} {shadowed}");
     }
 
     /// The same on a calibration ball's Hertz surface under the GelSight 2017 LEDs, where the

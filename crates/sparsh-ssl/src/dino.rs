@@ -35,8 +35,8 @@ pub struct DinoConfig {
     /// Batch normalization after the two hidden layers of the head (DINO's `use_bn_in_head`).
     #[config(default = false)]
     pub head_batch_norm: bool,
-    /// Weight of the KoLeo term on the student's global-view `[cls]` features (DINOv2: 0.1;
-    /// DINO: 0).
+    /// Weight of the KoLeo term on the student's `[cls]` features, summed over the global views
+    /// (DINOv2: 0.1; DINO: 0).
     #[config(default = 0.0)]
     pub koleo_weight: f64,
 }
@@ -197,15 +197,18 @@ pub fn koleo(x: Tensor<2>) -> Tensor<1> {
     let device = x.device();
     let norm = x.clone().powi_scalar(2).sum_dim(1).sqrt().clamp_min(1e-12);
     let unit = x / norm;
-    // ‖x̂_i − x̂_j‖² = 2 − 2 x̂_i·x̂_j; the diagonal is lifted out of the minimum
-    let dist2 = unit
-        .clone()
-        .matmul(unit.transpose())
-        .mul_scalar(-2.0)
-        .add_scalar(2.0)
-        + Tensor::<2>::eye(n, &device).mul_scalar(8.0);
-    let nearest = dist2.min_dim(1).clamp_min(1e-16).sqrt();
-    nearest.add_scalar(1e-8).log().mean().neg()
+    // the nearest neighbour by the largest dot product (the diagonal lifted out of the way), then
+    // its distance from the difference itself, as DINOv2's pdist does: 2 − 2·x̂_i·x̂_j cannot
+    // resolve rows closer than ~1e-4 in f32, the case the term is there for
+    let dots = unit.clone().matmul(unit.clone().transpose())
+        - Tensor::<2>::eye(n, &device).mul_scalar(4.0);
+    let nearest = unit.clone().select(0, dots.argmax(1).reshape([n]));
+    let distance = (unit - nearest)
+        .add_scalar(1e-8)
+        .powi_scalar(2)
+        .sum_dim(1)
+        .sqrt();
+    distance.add_scalar(1e-8).log().mean().neg()
 }
 
 fn cls(vit: &Vit, tokens: Tensor<3>, views: &[Vec<Vec<usize>>]) -> Tensor<2> {
@@ -226,7 +229,7 @@ impl Dino {
     /// ```text
     /// P_t = softmax((t − c) / τ_t),  log P_s = log_softmax(s / τ_s)
     /// loss = mean_{i ∈ global, v ≠ i} mean_batch( −Σ_k P_t,i · log P_s,v )
-    ///        + koleo_weight · mean_{i ∈ global} KoLeo(student [cls] of view i)
+    ///        + koleo_weight · Σ_{i ∈ global} KoLeo(student [cls] of view i)   (as DINOv2)
     /// ```
     ///
     /// # Shapes
@@ -277,7 +280,7 @@ impl Dino {
         if self.koleo_weight > 0.0 {
             for i in 0..g {
                 let term = koleo(s_cls.clone().narrow(0, i * b, b));
-                loss = loss + term.mul_scalar(self.koleo_weight / g as f64);
+                loss = loss + term.mul_scalar(self.koleo_weight);
             }
         }
         (loss, t_mean)
@@ -322,6 +325,14 @@ mod tests {
         let g = close.grad(&grad).expect("gradient");
         let after = koleo(close.inner() - g.mul_scalar(1e-5)).into_scalar::<f32>();
         assert!(after < start, "{after} vs {start}");
+        // rows closer than f32's 2 − 2·cos can resolve still get pushed apart
+        let tight = Tensor::<1>::from_floats([1.0, 0.0, 1.0, 1e-5, 1.0, -1e-5], &ad)
+            .reshape([3, 2])
+            .require_grad();
+        let grad = koleo(tight.clone()).backward();
+        let g = tight.grad(&grad).expect("gradient");
+        let size = g.abs().sum().into_scalar::<f32>();
+        assert!(size.is_finite() && size > 1.0, "gradient {size}");
     }
 
     /// Mean entropy (nats) of the centred, sharpened teacher distribution of a batch.

@@ -1,7 +1,7 @@
 //! Online force probe of a frozen encoder, fitted on training sequences and scored on held-out
-//! ones: the attentive probe of Sparsh's TacBench (one learned query cross-attending over the
-//! tokens, then an MLP; Sparsh paper §5, V-JEPA's `AttentivePooler`), and a linear (ridge)
-//! read-out of the mean-pooled tokens.
+//! ones: an attentive probe after Sparsh's TacBench decoder (one learned query cross-attending
+//! over the tokens, then an MLP; Sparsh paper §5, a simplified V-JEPA `AttentivePooler` without
+//! its second MLP block), and a linear (ridge) read-out of the mean-pooled tokens.
 
 use burn::module::{Module, Param};
 use burn::nn::{LayerNorm, LayerNormConfig, Linear, LinearConfig};
@@ -149,8 +149,9 @@ pub struct AttentiveProbeConfig {
     pub outputs: usize,
 }
 
-/// The attentive probe of TacBench: a learned query cross-attends over the layer-normed tokens
-/// (one multi-head block with a residual), then a layer norm and an MLP D → D/4 → outputs.
+/// The attentive probe, after TacBench's: a learned query cross-attends over the layer-normed
+/// tokens (one multi-head attention with a residual; the official pooler's further MLP block is
+/// left out), then a layer norm and an MLP D → D/4 → outputs.
 #[derive(Module, Debug)]
 pub struct AttentiveProbe {
     /// The learned query `[1, 1, dim]`.
@@ -174,9 +175,14 @@ pub struct AttentiveProbe {
 }
 
 impl AttentiveProbeConfig {
-    /// Initialize an [`AttentiveProbe`].
+    /// Initialize an [`AttentiveProbe`] (`num_heads` must divide `dim`).
     pub fn init(&self, device: &Device) -> AttentiveProbe {
         let d = self.dim;
+        assert!(
+            self.num_heads > 0 && d.is_multiple_of(self.num_heads),
+            "{} heads do not divide width {d}",
+            self.num_heads
+        );
         let norm = || LayerNormConfig::new(d).with_epsilon(LN_EPS).init(device);
         AttentiveProbe {
             query: Param::from_tensor(Tensor::random(

@@ -127,7 +127,8 @@ pub struct DinoSection {
     pub head_batch_norm: bool,
     /// Teacher EMA momentum: start, end (linear over the run; official fixed 0.998).
     pub ema: [f64; 2],
-    /// Weight of DINOv2's KoLeo term on the student's `[cls]` features (official DINO: 0).
+    /// Weight of DINOv2's KoLeo term on the student's `[cls]` features, summed over the global
+    /// views (DINOv2: 0.1; official DINO: 0).
     pub koleo_weight: f64,
     /// Views.
     pub views: DinoViewConfig,

@@ -245,7 +245,13 @@ pub fn probe_encoders(
         recipe.log.probe_max_samples,
         recipe.optim.batch_size,
     )
-    .ok_or_else(|| Error::file(first, "no force labels to probe (need 10 labelled frames)"))?;
+    .ok_or_else(|| {
+        Error::file(
+            first,
+            "no force probe: it needs force labels on at least 10 frames of several sequences \
+             (and [log] probe_max_samples ≥ 10)",
+        )
+    })?;
     // initialised as a run initialises it, on the autodiff device
     let device = Device::flex().autodiff();
     let random = Trainee::init(recipe, &device)?.encoder().clone();
