@@ -357,6 +357,15 @@ fn csv_row(r: &StepReport, probe_only: bool) -> String {
 /// Keeps the log rows of steps before `step` (a resumed run rewrites the rest).
 fn truncate_log(path: &Path, step: usize) -> Result<String, Error> {
     let text = std::fs::read_to_string(path).unwrap_or_default();
+    if let Some(header) = text.lines().next()
+        && format!("{header}\n") != csv_header()
+    {
+        return Err(Error::file(
+            path,
+            "has other columns than this version writes; resume it with the version that \
+             started it, or start a new run",
+        ));
+    }
     let mut out = String::from(csv_header());
     for line in text.lines().skip(1) {
         let s: usize = line

@@ -124,6 +124,18 @@ fn resume_continues_the_same_loss_curve() {
     let out = tmp.path().join("split");
     assert!(!out.join("checkpoint.tmp").exists());
     assert!(out.join("checkpoint/model.bpk").is_file());
+    // a log with another column layout (an older version's) is refused on resume
+    let log = tmp.path().join("full").join("log.csv");
+    let text = std::fs::read_to_string(&log).unwrap();
+    let old = text.replacen(",probe_linear_mn", "", 1);
+    std::fs::write(&log, old).unwrap();
+    let err = run(&r, &opts("full", true, None), &mut |_| {})
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("log.csv") && err.contains("other columns") && !err.contains('\n'),
+        "{err}"
+    );
     // the final encoder loads back under the official key names
     let enc = r.encoder_config().unwrap();
     let device = burn::prelude::Device::flex();
