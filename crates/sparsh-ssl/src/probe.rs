@@ -256,24 +256,8 @@ pub fn attentive_score(
     let row = t * d;
     let train: Vec<usize> = (0..y.len()).filter(|&i| !test[i]).collect();
     let tests: Vec<usize> = (0..y.len()).filter(|&i| test[i]).collect();
-    let nt = train.len() as f64;
-    let mut mean = vec![0.0f64; row];
-    let mut var = vec![0.0f64; row];
-    for &i in &train {
-        for (m, &v) in mean.iter_mut().zip(&tokens[i * row..(i + 1) * row]) {
-            *m += v as f64 / nt;
-        }
-    }
-    for &i in &train {
-        for ((s, &m), &v) in var
-            .iter_mut()
-            .zip(&mean)
-            .zip(&tokens[i * row..(i + 1) * row])
-        {
-            *s += (v as f64 - m).powi(2) / nt;
-        }
-    }
-    let scale: Vec<f64> = var.iter().map(|v| 1.0 / v.sqrt().max(1e-8)).collect();
+    let (mean, std) = column_stats(&train, row, 1e-8, |i, j| tokens[i * row + j] as f64);
+    let scale: Vec<f64> = std.iter().map(|s| 1.0 / s).collect();
     let standard = |rows: &[usize]| -> Vec<f32> {
         rows.iter()
             .flat_map(|&i| {
@@ -285,15 +269,7 @@ pub fn attentive_score(
             })
             .collect()
     };
-    let ymean: [f64; 3] = std::array::from_fn(|k| train.iter().map(|&i| y[i][k]).sum::<f64>() / nt);
-    let ystd: [f64; 3] = std::array::from_fn(|k| {
-        let v = train
-            .iter()
-            .map(|&i| (y[i][k] - ymean[k]).powi(2))
-            .sum::<f64>()
-            / nt;
-        v.sqrt().max(1e-9)
-    });
+    let (ymean, ystd) = column_stats(&train, 3, 1e-9, |i, k| y[i][k]);
     let heads = if d % 64 == 0 { d / 64 } else { 1 };
     let device = Device::flex().autodiff();
     let mut probe = crate::train::seeded(&device, seed, || {
@@ -311,7 +287,10 @@ pub fn attentive_score(
             ]);
             let target: Vec<f32> = rows
                 .iter()
-                .flat_map(|&i| (0..3).map(move |k| ((y[i][k] - ymean[k]) / ystd[k]) as f32))
+                .flat_map(|&i| {
+                    let (ymean, ystd) = (&ymean, &ystd);
+                    (0..3).map(move |k| ((y[i][k] - ymean[k]) / ystd[k]) as f32)
+                })
                 .collect();
             let target =
                 Tensor::<1>::from_floats(target.as_slice(), &device).reshape([rows.len(), 3]);
@@ -364,21 +343,9 @@ pub fn ridge_score(x: &[Vec<f64>], y: &[[f64; 3]], test: &[bool]) -> ProbeScore 
     let train: Vec<usize> = (0..x.len()).filter(|&i| !test[i]).collect();
     let tests: Vec<usize> = (0..x.len()).filter(|&i| test[i]).collect();
     let nt = train.len() as f64;
-    let mean: Vec<f64> = (0..d)
-        .map(|j| train.iter().map(|&i| x[i][j]).sum::<f64>() / nt)
-        .collect();
-    let std: Vec<f64> = (0..d)
-        .map(|j| {
-            let v = train
-                .iter()
-                .map(|&i| (x[i][j] - mean[j]).powi(2))
-                .sum::<f64>()
-                / nt;
-            v.sqrt().max(1e-8)
-        })
-        .collect();
+    let (mean, std) = column_stats(&train, d, 1e-8, |i, j| x[i][j]);
     let z = |i: usize| -> Vec<f64> { (0..d).map(|j| (x[i][j] - mean[j]) / std[j]).collect() };
-    let ymean: [f64; 3] = std::array::from_fn(|k| train.iter().map(|&i| y[i][k]).sum::<f64>() / nt);
+    let (ymean, _) = column_stats(&train, 3, 0.0, |i, k| y[i][k]);
     // normal equations (ZᵀZ + λI) W = Zᵀ(Y − ȳ)
     let lambda = 1e-2 * nt;
     let mut a = vec![0.0; d * d];
@@ -415,6 +382,31 @@ pub fn ridge_score(x: &[Vec<f64>], y: &[[f64; 3]], test: &[bool]) -> ProbeScore 
         baseline_mn: 1000.0 * (se0 / n).sqrt(),
         feature_std: 0.0,
     }
+}
+
+/// Mean and standard deviation (at least `floor`) over `rows` of each of `n` features, where
+/// `value(row, feature)` reads the data: the training statistics both probes standardize with.
+fn column_stats(
+    rows: &[usize],
+    n: usize,
+    floor: f64,
+    value: impl Fn(usize, usize) -> f64,
+) -> (Vec<f64>, Vec<f64>) {
+    let count = rows.len() as f64;
+    let mut mean = vec![0.0; n];
+    for &i in rows {
+        for (j, m) in mean.iter_mut().enumerate() {
+            *m += value(i, j) / count;
+        }
+    }
+    let mut var = vec![0.0; n];
+    for &i in rows {
+        for (j, v) in var.iter_mut().enumerate() {
+            *v += (value(i, j) - mean[j]).powi(2) / count;
+        }
+    }
+    let std = var.iter().map(|v| v.sqrt().max(floor)).collect();
+    (mean, std)
 }
 
 /// Solves `A X = B` for symmetric positive definite `A` (`d × d`, overwritten).
