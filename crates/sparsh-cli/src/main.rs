@@ -190,7 +190,8 @@ enum Command {
         /// Training recipe (TOML), e.g. assets/ssl/mae_tiny_cpu.toml.
         #[arg(long)]
         config: PathBuf,
-        /// Dataset directory (generated or Sparsh pickles); repeat for several.
+        /// Dataset: a directory (generated or Sparsh pickles) or a Taxim pack (`dataPack.npz`
+        /// or its directory); repeat to pool the sequences of several.
         #[arg(long, required = true)]
         data: Vec<PathBuf>,
         /// Run directory (log.csv, checkpoint/, encoder.safetensors).

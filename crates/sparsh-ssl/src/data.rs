@@ -14,7 +14,11 @@
 //! - the official Sparsh pickles (YCB-Slide / Touch-Slide / Touch-and-Go style): each `*.pkl`
 //!   holds a list of JPEG (or PNG) byte strings — one sequence — either at the top level or as the
 //!   first list value of a dictionary; the background is a `bg*.jpg`/`bg*.png` beside the pickle,
-//!   else the sequence's first frame.
+//!   else the sequence's first frame;
+//! - a Taxim calibration pack (`dataPack.npz`, or a directory holding one): `f0` is the
+//!   background, and each of `imgs` (separate presses of a ball, not a time series) is a sequence
+//!   of one frame seen from rest: frame offsets before it read the no-contact frame, and it has
+//!   no force label.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -37,6 +41,20 @@ pub struct Sequence {
     pub frames: Vec<Frame>,
     /// Total force per frame `[fx, fy, fz]` in N, when labelled.
     pub forces: Option<Vec<[f32; 3]>>,
+    /// The no-contact frame (the background preprocessed against itself), read by frame
+    /// offsets that reach before the first frame; without it, samples stay inside the sequence.
+    pub rest_frame: Option<Frame>,
+}
+
+impl Sequence {
+    /// The frame `back` steps before frame `t`: the rest frame before the sequence start, `None`
+    /// when there is no such frame.
+    fn frame_back(&self, t: usize, back: usize) -> Option<&Frame> {
+        match t.checked_sub(back) {
+            Some(i) => self.frames.get(i),
+            None => self.rest_frame.as_ref(),
+        }
+    }
 }
 
 /// Preprocessed sequences at one image size.
@@ -116,18 +134,31 @@ struct LabelRow {
 }
 
 impl Dataset {
-    /// Loads a directory: a generated dataset when it has `labels.jsonl`, else every `*.pkl`
-    /// below it (one level of sub-directories).
-    pub fn load(dir: &Path, size: [usize; 2]) -> Result<Self, Error> {
-        if !dir.is_dir() {
-            return Err(Error::file(dir, "not a directory"));
+    /// Loads a Taxim pack (an `.npz` file, or a directory with `dataPack.npz`), else a
+    /// directory: a generated dataset when it has `labels.jsonl`, else every `*.pkl` below it
+    /// (one level of sub-directories).
+    pub fn load(path: &Path, size: [usize; 2]) -> Result<Self, Error> {
+        if path.is_file() {
+            if path.extension().is_some_and(|e| e == "npz") {
+                return Self::load_taxim_pack(path, size);
+            }
+            return Err(Error::file(
+                path,
+                "neither a dataset directory nor a Taxim pack (.npz)",
+            ));
         }
-        if dir.join("labels.jsonl").is_file() {
-            return Self::load_generated(dir, size);
+        if !path.is_dir() {
+            return Err(Error::file(path, "no such file or directory"));
+        }
+        if path.join("labels.jsonl").is_file() {
+            return Self::load_generated(path, size);
+        }
+        if path.join(TAXIM_PACK).is_file() {
+            return Self::load_taxim_pack(&path.join(TAXIM_PACK), size);
         }
         let mut pickles = Vec::new();
-        for entry in std::fs::read_dir(dir).map_err(|e| Error::file(dir, e))? {
-            let p = entry.map_err(|e| Error::file(dir, e))?.path();
+        for entry in std::fs::read_dir(path).map_err(|e| Error::file(path, e))? {
+            let p = entry.map_err(|e| Error::file(path, e))?.path();
             if p.is_dir() {
                 for sub in std::fs::read_dir(&p).map_err(|e| Error::file(&p, e))? {
                     let q = sub.map_err(|e| Error::file(&p, e))?.path();
@@ -141,8 +172,8 @@ impl Dataset {
         }
         if pickles.is_empty() {
             return Err(Error::file(
-                dir,
-                "no frames: neither labels.jsonl nor *.pkl files",
+                path,
+                format!("no frames: neither labels.jsonl, {TAXIM_PACK} nor *.pkl files"),
             ));
         }
         pickles.sort();
@@ -197,8 +228,39 @@ impl Dataset {
                 })
                 .collect::<Result<Vec<_>, _>>()?;
             let forces = rows.iter().map(|r| r.force_n).collect::<Option<Vec<_>>>();
-            sequences.push(Sequence { frames, forces });
+            sequences.push(Sequence {
+                frames,
+                forces,
+                rest_frame: None,
+            });
         }
+        Ok(Self { sequences, size })
+    }
+
+    /// Loads a Taxim calibration pack: one unlabelled sequence per frame of `imgs`, each with
+    /// `f0` as background and as rest frame.
+    pub fn load_taxim_pack(path: &Path, size: [usize; 2]) -> Result<Self, Error> {
+        let pack = sparsh_optics::pack::CalibrationPack::read(path)
+            .map_err(|e| Error::file(path, format!("{}: {}", e.field, e.message)))?;
+        if pack.frames.is_empty() {
+            return Err(Error::file(path, "imgs: the pack holds no frames"));
+        }
+        let bg = &pack.background;
+        let rest = Arc::new(preprocess(bg, bg, size).map_err(|e| Error::file(path, e))?);
+        let sequences = pack
+            .frames
+            .par_iter()
+            .enumerate()
+            .map(|(k, img)| {
+                let frame = preprocess(img, bg, size)
+                    .map_err(|e| Error::file(path, format!("imgs: frame {k}: {e}")))?;
+                Ok(Sequence {
+                    frames: vec![Arc::new(frame)],
+                    forces: None,
+                    rest_frame: Some(rest.clone()),
+                })
+            })
+            .collect::<Result<Vec<_>, Error>>()?;
         Ok(Self { sequences, size })
     }
 
@@ -235,8 +297,12 @@ pub fn load_pickle(path: &Path, size: [usize; 2]) -> Result<Sequence, Error> {
     Ok(Sequence {
         frames,
         forces: None,
+        rest_frame: None,
     })
 }
+
+/// The file name of a Taxim calibration pack.
+const TAXIM_PACK: &str = "dataPack.npz";
 
 fn background_beside(path: &Path) -> Option<PathBuf> {
     let dir = path.parent()?;
@@ -416,19 +482,24 @@ pub struct HostBatch {
 pub struct Sampler {
     data: Arc<Dataset>,
     stacking: Stacking,
-    /// The valid `(sequence, frame)` pairs (frames with every offset inside the sequence).
+    /// The valid `(sequence, frame)` pairs: every offset inside the sequence, or reaching back
+    /// to its rest frame.
     pub samples: Vec<(usize, usize)>,
 }
 
 impl Sampler {
-    /// All samples of `data` whose offsets stay within their sequence.
+    /// All samples of `data` whose offsets stay within their sequence; every frame of a
+    /// sequence with a rest frame.
     pub fn new(data: Arc<Dataset>, stacking: Stacking) -> Result<Self, Error> {
         let reach = stacking.offsets().iter().copied().max().unwrap_or(0);
         let samples: Vec<(usize, usize)> = data
             .sequences
             .iter()
             .enumerate()
-            .flat_map(|(s, seq)| (reach..seq.frames.len()).map(move |t| (s, t)))
+            .flat_map(|(s, seq)| {
+                let first = if seq.rest_frame.is_some() { 0 } else { reach };
+                (first..seq.frames.len()).map(move |t| (s, t))
+            })
             .collect();
         if samples.is_empty() {
             return Err(Error::Data(format!(
@@ -463,7 +534,9 @@ impl Sampler {
                     Warp::sample(&mut Rng::for_step(seed, step as u64, 1000 + i as u64), aug);
                 let seq = &self.data.sequences[s];
                 for (k, &off) in self.stacking.offsets().iter().enumerate() {
-                    let frame = &seq.frames[t - off];
+                    let frame = seq
+                        .frame_back(t, off)
+                        .expect("Sampler::new admits only samples whose offsets resolve");
                     warp.apply(frame, h, w, &mut out[k * 3 * h * w..(k + 1) * 3 * h * w]);
                 }
             });
@@ -575,6 +648,7 @@ mod tests {
                         .map(|t| Arc::new(vec![(s * 100 + t) as f32; 3 * 48]))
                         .collect(),
                     forces: Some((0..len).map(|t| [t as f32, 0.0, 1.0]).collect()),
+                    rest_frame: None,
                 })
                 .collect(),
         })
@@ -596,6 +670,29 @@ mod tests {
         seen.sort_unstable();
         assert_eq!(seen, (0..9).collect::<Vec<_>>());
         assert!(Sampler::new(toy(2, 5), Stacking::Channels(vec![0, 5])).is_err());
+    }
+
+    #[test]
+    fn offsets_before_the_start_read_the_rest_frame_where_there_is_one() {
+        let mut data = Arc::unwrap_or_clone(toy(2, 7));
+        data.sequences[0].frames.truncate(3);
+        data.sequences[0].rest_frame = Some(Arc::new(vec![-1.0; 3 * 48]));
+        let sampler = Sampler::new(Arc::new(data), Stacking::Frames(vec![0, 2, 4])).unwrap();
+        // every frame of the sequence with a rest frame; only t ≥ 4 of the one without
+        assert_eq!(
+            sampler.samples,
+            vec![(0, 0), (0, 1), (0, 2), (1, 4), (1, 5), (1, 6)]
+        );
+        let b = sampler.batch(&[2, 3], &AugmentConfig::none(), 0, 0);
+        let clip = 3 * 3 * 48;
+        let first = |k: usize, f: usize| b.values[k * clip + f * 3 * 48];
+        // (seq 0, t 2): frames 2 and 0, then the rest frame
+        assert_eq!([first(0, 0), first(0, 1), first(0, 2)], [2.0, 0.0, -1.0]);
+        // (seq 1, t 4): frames 4, 2, 0
+        assert_eq!(
+            [first(1, 0), first(1, 1), first(1, 2)],
+            [104.0, 102.0, 100.0]
+        );
     }
 
     #[test]
@@ -624,6 +721,7 @@ mod tests {
             sequences: vec![Sequence {
                 frames: (0..6).map(|_| Arc::new(v.clone())).collect(),
                 forces: None,
+                rest_frame: None,
             }],
         });
         let s = Sampler::new(data, Stacking::Frames(vec![0, 2, 4])).unwrap();

@@ -4,7 +4,8 @@
 //! - [`vit`]: the ViT encoder (no `[cls]`, fixed sinusoidal positions, optional registers).
 //! - [`masks`]: the masking and view samplers of the four objectives.
 //! - [`mae`], [`dino`], [`jepa`]: MAE, DINO, I-JEPA and V-JEPA.
-//! - [`data`]: official preprocessing, datasets (generated, Sparsh pickles), the batch loader.
+//! - [`data`]: official preprocessing, datasets (generated, Sparsh pickles, Taxim packs), the
+//!   batch loader.
 //! - [`weights`]: safetensors with the official checkpoints' key names.
 //! - [`recipe`], [`train`], [`probe`]: training recipes, the training loop, the online force probe.
 
