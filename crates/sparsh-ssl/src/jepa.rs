@@ -22,6 +22,29 @@ pub enum JepaLoss {
     L1,
 }
 
+/// How the target encoder's features are normalized into regression targets.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum TargetNorm {
+    /// Layer norm per token (official I-JEPA and V-JEPA).
+    Layer,
+    /// Layer norm per token, then each (token, feature) standardized over the batch: the
+    /// pattern every sample shares (on difference images, the flat background) is removed, so
+    /// the targets are the sample-specific part at unit scale and a collapsing encoder cannot
+    /// shrink them.
+    LayerBatch,
+}
+
+/// `h` standardized per (token, feature) over the batch: `(h − mean_b h) / √(var_b h + 1e-8)`.
+///
+/// # Shapes
+/// - `h`: `[batch, tokens, dim]` → same
+pub fn batch_standardize(h: Tensor<3>) -> Tensor<3> {
+    let c = h.clone() - h.mean_dim(0);
+    let var = c.clone().powi_scalar(2).mean_dim(0);
+    c / (var + 1e-8).sqrt()
+}
+
 /// Configuration of a [`Predictor`].
 #[derive(Config, Debug)]
 pub struct PredictorConfig {
@@ -123,6 +146,9 @@ pub struct JepaConfig {
     pub predictor_heads: usize,
     /// Latent regression loss.
     pub loss: JepaLoss,
+    /// Target normalization.
+    #[config(default = "TargetNorm::Layer")]
+    pub target_norm: TargetNorm,
 }
 
 /// Context encoder, EMA target encoder and predictor.
@@ -137,6 +163,9 @@ pub struct Jepa {
     /// Loss kind.
     #[module(skip)]
     pub loss_kind: JepaLoss,
+    /// Target normalization.
+    #[module(skip)]
+    pub target_norm: TargetNorm,
 }
 
 impl JepaConfig {
@@ -157,6 +186,7 @@ impl JepaConfig {
             .with_mlp_ratio(self.encoder.mlp_ratio)
             .init(device),
             loss_kind: self.loss,
+            target_norm: self.target_norm,
         }
     }
 }
@@ -172,7 +202,8 @@ impl Jepa {
     /// Latent regression loss averaged over the mask sets and their target sets.
     ///
     /// ```text
-    /// h = layer_norm(target_encoder(x)),  z = encoder(x[context])
+    /// h = layer_norm(target_encoder(x))  [then batch_standardize(h) under TargetNorm::LayerBatch]
+    /// z = encoder(x[context])
     /// loss = mean_sets mean_targets ℓ(predictor(z, context, target), h[target])
     /// ```
     ///
@@ -184,7 +215,11 @@ impl Jepa {
             self.target_encoder
                 .forward(x.clone().detach(), None)
                 .patches,
-        )
+        );
+        let h = match self.target_norm {
+            TargetNorm::Layer => h,
+            TargetNorm::LayerBatch => batch_standardize(h),
+        }
         .detach();
         let tokens = self.encoder.embed(x);
         let mut total: Option<Tensor<1>> = None;
@@ -225,5 +260,37 @@ impl Jepa {
     pub fn after_step(mut self, momentum: f64) -> Self {
         self.target_encoder = ema_update(self.target_encoder, &self.encoder, momentum);
         self
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Per (token, feature): zero mean and unit variance over the batch, whatever the shared
+    /// offset and scale; a feature constant over the batch stays 0 instead of dividing by 0.
+    #[test]
+    fn batch_standardize_removes_the_shared_pattern() {
+        let device = Device::flex();
+        // [batch 4, tokens 2, dim 2]: token 0 feature 0 = 10 + small sample term; the rest constant
+        let v = [
+            10.0, 3.0, 3.0, 3.0, 10.002, 3.0, 3.0, 3.0, 9.999, 3.0, 3.0, 3.0, 10.001, 3.0, 3.0, 3.0,
+        ];
+        let h = Tensor::<1>::from_floats(v, &device).reshape([4, 2, 2]);
+        let out: Vec<f32> = batch_standardize(h).into_data().try_to_vec().unwrap();
+        let col: Vec<f64> = (0..4).map(|b| out[b * 4] as f64).collect();
+        let mean = col.iter().sum::<f64>() / 4.0;
+        let var = col.iter().map(|c| (c - mean).powi(2)).sum::<f64>() / 4.0;
+        assert!(mean.abs() < 1e-3 && (var - 1.0).abs() < 0.02, "{col:?}");
+        // ordering of the samples kept: 10.002 highest, 9.999 lowest
+        assert!(
+            col[1] > col[3] && col[3] > col[0] && col[0] > col[2],
+            "{col:?}"
+        );
+        for b in 0..4 {
+            for k in 1..4 {
+                assert_eq!(out[b * 4 + k], 0.0);
+            }
+        }
     }
 }

@@ -5,6 +5,8 @@
 //! (JEPA context and target sets are truncated to the batch minimum, as the official collators do),
 //! so they batch into one integer tensor.
 
+use std::ops::Range;
+
 use crate::rng::Rng;
 
 /// MAE random masking of one batch.
@@ -17,6 +19,17 @@ pub struct MaeMask {
     pub restore: Vec<Vec<usize>>,
     /// `true` where the token is masked (predicted), `[batch][tokens]`.
     pub masked: Vec<Vec<bool>>,
+}
+
+impl MaeMask {
+    /// The masks of the batch rows `rows` (a micro-batch).
+    pub fn rows(&self, rows: Range<usize>) -> Self {
+        Self {
+            keep: self.keep[rows.clone()].to_vec(),
+            restore: self.restore[rows.clone()].to_vec(),
+            masked: self.masked[rows].to_vec(),
+        }
+    }
 }
 
 /// Per-sample uniform random masking of `ratio` of `tokens` (official: 0.75); keeps
@@ -53,6 +66,20 @@ pub struct JepaMasks {
     /// Target sets `[set][batch][k_target]`, sorted (I-JEPA: one per target block;
     /// V-JEPA: one, the union of the tube blocks).
     pub targets: Vec<Vec<Vec<usize>>>,
+}
+
+impl JepaMasks {
+    /// The masks of the batch rows `rows` (a micro-batch).
+    pub fn rows(&self, rows: Range<usize>) -> Self {
+        Self {
+            context: self.context[rows.clone()].to_vec(),
+            targets: self
+                .targets
+                .iter()
+                .map(|t| t[rows.clone()].to_vec())
+                .collect(),
+        }
+    }
 }
 
 /// Block geometry on a `rows × cols` grid.
@@ -288,6 +315,18 @@ pub struct DinoViews {
     pub global: Vec<Vec<Vec<usize>>>,
     /// Local views `[view][batch][k_local]`.
     pub local: Vec<Vec<Vec<usize>>>,
+}
+
+impl DinoViews {
+    /// The views of the batch rows `rows` (a micro-batch).
+    pub fn rows(&self, rows: Range<usize>) -> Self {
+        let cut =
+            |views: &[Vec<Vec<usize>>]| views.iter().map(|v| v[rows.clone()].to_vec()).collect();
+        Self {
+            global: cut(&self.global),
+            local: cut(&self.local),
+        }
+    }
 }
 
 /// DINO token-crop views: each view keeps a rectangle of the patch grid whose area fraction is

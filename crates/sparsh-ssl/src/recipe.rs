@@ -28,7 +28,7 @@ use serde::{Deserialize, Serialize};
 use crate::Error;
 use crate::data::{AugmentConfig, Stacking};
 use crate::dino::DinoConfig;
-use crate::jepa::{JepaConfig, JepaLoss};
+use crate::jepa::{JepaConfig, JepaLoss, TargetNorm};
 use crate::mae::MaeConfig;
 use crate::masks::{DinoViewConfig, IjepaMaskConfig, TubeMaskConfig, default_tube_masks};
 use crate::vit::{VitConfig, size_preset};
@@ -170,6 +170,9 @@ pub struct JepaSection {
     pub tube_masks: Vec<TubeMaskConfig>,
     /// V-JEPA tubelet length.
     pub tubelet_size: usize,
+    /// Regression targets: `"layer"` (official) or `"layer_batch"` (then standardized per
+    /// token and feature over the batch, see [`TargetNorm`]).
+    pub target_norm: TargetNorm,
 }
 
 impl Default for JepaSection {
@@ -182,6 +185,7 @@ impl Default for JepaSection {
             masks: IjepaMaskConfig::default(),
             tube_masks: default_tube_masks(),
             tubelet_size: 2,
+            target_norm: TargetNorm::Layer,
         }
     }
 }
@@ -194,6 +198,12 @@ pub struct OptimSection {
     pub steps: usize,
     /// Samples per step.
     pub batch_size: usize,
+    /// Equal micro-batches the step's batch is split into, each forward and backward on its
+    /// own thread with the gradients averaged (the same gradient for the mean losses of MAE and
+    /// the JEPAs; DINO's centre, head batch norm and KoLeo then see one micro-batch at a time,
+    /// as on one GPU of a multi-GPU run). The split is fixed by the recipe, never by the
+    /// thread count, so results do not depend on the number of threads.
+    pub micro_batches: usize,
     /// Peak learning rate.
     pub lr: f64,
     /// Final learning rate.
@@ -209,6 +219,7 @@ impl Default for OptimSection {
         Self {
             steps: 1000,
             batch_size: 32,
+            micro_batches: 1,
             lr: 1e-4,
             min_lr: 1e-6,
             warmup_steps: 50,
@@ -390,6 +401,13 @@ impl Recipe {
         if self.optim.steps == 0 || self.optim.batch_size == 0 {
             return bad("optim.steps and optim.batch_size must be positive".into());
         }
+        let parts = self.optim.micro_batches;
+        if parts == 0 || !self.optim.batch_size.is_multiple_of(parts) {
+            return bad(format!(
+                "optim.micro_batches: {parts} does not divide optim.batch_size {}",
+                self.optim.batch_size
+            ));
+        }
         if self.log.checkpoint_every == 0 {
             return bad("log.checkpoint_every must be positive".into());
         }
@@ -421,9 +439,10 @@ impl Recipe {
                     return bad("dino.views.num_global must be at least 2".into());
                 }
                 let w = self.dino.koleo_weight;
-                if !(w.is_finite() && w >= 0.0) || (w > 0.0 && self.optim.batch_size < 2) {
+                let per_part = self.optim.batch_size / self.optim.micro_batches;
+                if !(w.is_finite() && w >= 0.0) || (w > 0.0 && per_part < 2) {
                     return bad(format!(
-                        "dino.koleo_weight must be ≥ 0 (and needs batch_size ≥ 2), got {w}"
+                        "dino.koleo_weight must be ≥ 0 (and needs ≥ 2 samples per micro-batch), got {w}"
                     ));
                 }
             }
@@ -484,7 +503,8 @@ impl Recipe {
             j.predictor_depth,
             j.predictor_heads,
             loss,
-        ))
+        )
+        .with_target_norm(j.target_norm))
     }
 }
 
@@ -528,6 +548,16 @@ mod tests {
             .replace("patch_size = 8\n", "patch_size = 8\nnum_registers = 1\n");
         let e = Recipe::parse(&format!("{dino}[dino]\nkoleo_weight = -0.1\n")).unwrap_err();
         assert!(e.contains("dino.koleo_weight") && !e.contains('\n'), "{e}");
+        for parts in [0, 5] {
+            let e = Recipe::parse(&format!(
+                "{BASE}[optim]\nbatch_size = 32\nmicro_batches = {parts}\n"
+            ))
+            .unwrap_err();
+            assert!(
+                e.contains("optim.micro_batches") && !e.contains('\n'),
+                "{e}"
+            );
+        }
         let e = Recipe::parse(&BASE.replace("mae", "simclr")).unwrap_err();
         assert!(e.contains("simclr") || e.contains("variant"), "{e}");
     }

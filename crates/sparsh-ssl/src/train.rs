@@ -10,13 +10,15 @@
 //! run would have used.
 
 use std::io::Write;
+use std::ops::Range;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Instant;
 
-use burn::module::Module;
+use burn::module::{Module, ModuleVisitor, Param};
 use burn::optim::{AdamWConfig, GradientsParams};
 use burn::prelude::*;
+use rayon::prelude::*;
 
 use crate::Error;
 use crate::data::{Dataset, HostBatch, Sampler};
@@ -24,7 +26,7 @@ use crate::dino::Dino;
 use crate::ema::momentum_at;
 use crate::jepa::Jepa;
 use crate::mae::Mae;
-use crate::masks::{dino_views, ijepa_masks, mae_mask, tube_masks};
+use crate::masks::{DinoViews, JepaMasks, MaeMask, dino_views, ijepa_masks, mae_mask, tube_masks};
 use crate::probe::{ProbeScore, ProbeSet};
 use crate::recipe::{ObjectiveKind, Recipe};
 use crate::rng::Rng;
@@ -110,45 +112,56 @@ impl Trainee {
         }
     }
 
-    /// Loss of step `step` on `x`, with masks / views drawn from `(seed, step)`; for DINO also
-    /// the teacher mean for the centre update.
+    /// The masks or views of step `step` for a batch of `b`, drawn from `(seed, step)`.
+    pub fn draw(&self, recipe: &Recipe, b: usize, step: usize) -> StepDraw {
+        let mut rng = Rng::for_step(recipe.seed, step as u64, 1);
+        let enc = recipe.encoder_config().expect("validated recipe");
+        let [gt, gh, gw] = enc.grid();
+        match self {
+            Trainee::Mae(_) => StepDraw::Mae(mae_mask(
+                &mut rng,
+                b,
+                enc.num_patches(),
+                recipe.mae.mask_ratio,
+            )),
+            Trainee::Dino(_) => {
+                let views = dino_views(&mut rng, b, gh * gt, gw, &recipe.dino.views);
+                let d = &recipe.dino;
+                let teacher_temp = d.teacher_temp[0]
+                    + (d.teacher_temp[1] - d.teacher_temp[0])
+                        * (step as f64 / d.teacher_temp_warmup_steps.max(1) as f64).min(1.0);
+                StepDraw::Dino {
+                    views,
+                    teacher_temp,
+                }
+            }
+            Trainee::Jepa(_) => StepDraw::Jepa(if recipe.objective == ObjectiveKind::Vjepa {
+                recipe
+                    .jepa
+                    .tube_masks
+                    .iter()
+                    .map(|c| tube_masks(&mut rng, b, [gt, gh, gw], c))
+                    .collect()
+            } else {
+                vec![ijepa_masks(&mut rng, b, gh, gw, &recipe.jepa.masks)]
+            }),
+        }
+    }
+
+    /// Loss of step `step` on the whole batch `x`, with masks / views drawn from
+    /// `(seed, step)`; for DINO also the teacher mean for the centre update.
     pub fn loss(
         &self,
         recipe: &Recipe,
         x: Tensor<5>,
         step: usize,
     ) -> (Tensor<1>, Option<Tensor<2>>) {
-        let mut rng = Rng::for_step(recipe.seed, step as u64, 1);
         let b = x.dims()[0];
-        let enc = recipe.encoder_config().expect("validated recipe");
-        let [gt, gh, gw] = enc.grid();
+        let draw = self.draw(recipe, b, step);
         match self {
-            Trainee::Mae(m) => {
-                let mask = mae_mask(&mut rng, b, enc.num_patches(), recipe.mae.mask_ratio);
-                (m.loss(x, &mask), None)
-            }
-            Trainee::Dino(m) => {
-                let views = dino_views(&mut rng, b, gh * gt, gw, &recipe.dino.views);
-                let d = &recipe.dino;
-                let t = d.teacher_temp[0]
-                    + (d.teacher_temp[1] - d.teacher_temp[0])
-                        * (step as f64 / d.teacher_temp_warmup_steps.max(1) as f64).min(1.0);
-                let (loss, mean) = m.loss(x, &views, t);
-                (loss, Some(mean))
-            }
-            Trainee::Jepa(m) => {
-                let sets = if recipe.objective == ObjectiveKind::Vjepa {
-                    recipe
-                        .jepa
-                        .tube_masks
-                        .iter()
-                        .map(|c| tube_masks(&mut rng, b, [gt, gh, gw], c))
-                        .collect()
-                } else {
-                    vec![ijepa_masks(&mut rng, b, gh, gw, &recipe.jepa.masks)]
-                };
-                (m.loss(x, &sets), None)
-            }
+            Trainee::Mae(m) => m.draw_loss(x, &draw, 0..b),
+            Trainee::Dino(m) => m.draw_loss(x, &draw, 0..b),
+            Trainee::Jepa(m) => m.draw_loss(x, &draw, 0..b),
         }
     }
 
@@ -169,25 +182,31 @@ impl Trainee {
         }
     }
 
-    fn optimize(self, optim: &mut burn::optim::ModuleOptimizer, lr: f64, loss: &Tensor<1>) -> Self {
-        let grads = loss.backward();
+    /// Gradients of the step's loss over `optim.micro_batches` micro-batches of `x`.
+    pub fn gradients(
+        &self,
+        recipe: &Recipe,
+        x: Tensor<5>,
+        step: usize,
+    ) -> (GradientsParams, f64, Option<Tensor<2>>) {
+        let b = x.dims()[0];
+        let draw = self.draw(recipe, b, step);
+        let parts = recipe.optim.micro_batches;
         match self {
             Trainee::Mae(m) => {
-                let g = GradientsParams::from_grads(grads, &m);
-                Trainee::Mae(optim.step(lr, m, g))
+                micro_batch_gradients(m, x, parts, |m, x, r| m.draw_loss(x, &draw, r))
             }
             Trainee::Dino(m) => {
-                let g = GradientsParams::from_grads(grads, &m);
-                Trainee::Dino(optim.step(lr, m, g))
+                micro_batch_gradients(m, x, parts, |m, x, r| m.draw_loss(x, &draw, r))
             }
             Trainee::Jepa(m) => {
-                let g = GradientsParams::from_grads(grads, &m);
-                Trainee::Jepa(optim.step(lr, m, g))
+                micro_batch_gradients(m, x, parts, |m, x, r| m.draw_loss(x, &draw, r))
             }
         }
     }
 
-    /// One full training step on a host batch: loss, backward, AdamW, EMA. Returns the loss.
+    /// One full training step on a host batch: loss, backward (per micro-batch), AdamW, EMA.
+    /// Returns the loss (mean over the micro-batches).
     pub fn train_step(
         self,
         recipe: &Recipe,
@@ -196,10 +215,13 @@ impl Trainee {
         device: &Device,
     ) -> (Self, f64) {
         let x = Tensor::<1>::from_floats(batch.values.as_slice(), device).reshape(batch.shape);
-        let (loss, aux) = self.loss(recipe, x, batch.step);
-        let value = loss.clone().into_scalar::<f32>() as f64;
+        let (grads, value, aux) = self.gradients(recipe, x, batch.step);
         let lr = recipe.optim.lr_at(batch.step);
-        let next = self.optimize(optim, lr, &loss);
+        let next = match self {
+            Trainee::Mae(m) => Trainee::Mae(optim.step(lr, m, grads)),
+            Trainee::Dino(m) => Trainee::Dino(optim.step(lr, m, grads)),
+            Trainee::Jepa(m) => Trainee::Jepa(optim.step(lr, m, grads)),
+        };
         (next.after_step(recipe, batch.step, aux), value)
     }
 
@@ -225,6 +247,166 @@ impl Trainee {
             Trainee::Jepa(m) => Trainee::Jepa(m.try_load_file(path).map_err(err)?),
         })
     }
+}
+
+/// The masks or views of one step, drawn for the whole batch.
+#[derive(Debug, Clone)]
+pub enum StepDraw {
+    /// MAE random masking.
+    Mae(MaeMask),
+    /// DINO views and the teacher temperature of the step.
+    Dino {
+        /// Token-crop views.
+        views: DinoViews,
+        /// Teacher softmax temperature.
+        teacher_temp: f64,
+    },
+    /// JEPA context and target sets (one per I-JEPA step, one per tube-mask kind in V-JEPA).
+    Jepa(Vec<JepaMasks>),
+}
+
+/// An objective's loss on the batch rows `rows` of a step, given the step's draw.
+trait Objective {
+    /// Loss on `x` (the rows `rows` of the batch) and, for DINO, the teacher mean.
+    fn draw_loss(
+        &self,
+        x: Tensor<5>,
+        draw: &StepDraw,
+        rows: Range<usize>,
+    ) -> (Tensor<1>, Option<Tensor<2>>);
+}
+
+const DRAW_MISMATCH: &str = "a step's draw comes from the same objective";
+
+impl Objective for Mae {
+    fn draw_loss(
+        &self,
+        x: Tensor<5>,
+        draw: &StepDraw,
+        rows: Range<usize>,
+    ) -> (Tensor<1>, Option<Tensor<2>>) {
+        let StepDraw::Mae(mask) = draw else {
+            unreachable!("{DRAW_MISMATCH}")
+        };
+        (self.loss(x, &mask.rows(rows)), None)
+    }
+}
+
+impl Objective for Dino {
+    fn draw_loss(
+        &self,
+        x: Tensor<5>,
+        draw: &StepDraw,
+        rows: Range<usize>,
+    ) -> (Tensor<1>, Option<Tensor<2>>) {
+        let StepDraw::Dino {
+            views,
+            teacher_temp,
+        } = draw
+        else {
+            unreachable!("{DRAW_MISMATCH}")
+        };
+        let (loss, mean) = self.loss(x, &views.rows(rows), *teacher_temp);
+        (loss, Some(mean))
+    }
+}
+
+impl Objective for Jepa {
+    fn draw_loss(
+        &self,
+        x: Tensor<5>,
+        draw: &StepDraw,
+        rows: Range<usize>,
+    ) -> (Tensor<1>, Option<Tensor<2>>) {
+        let StepDraw::Jepa(sets) = draw else {
+            unreachable!("{DRAW_MISMATCH}")
+        };
+        let sets: Vec<JepaMasks> = sets.iter().map(|s| s.rows(rows.clone())).collect();
+        (self.loss(x, &sets), None)
+    }
+}
+
+/// Sums one parameter's gradient over the micro-batches and divides by their count.
+struct AverageGradients<'a> {
+    parts: &'a mut [GradientsParams],
+    out: GradientsParams,
+}
+
+impl ModuleVisitor for AverageGradients<'_> {
+    fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+        let n = self.parts.len() as f64;
+        // in micro-batch order, so the sum does not depend on which thread finished first
+        let sum = self
+            .parts
+            .iter_mut()
+            .filter_map(|g| g.remove::<D>(param.id))
+            .reduce(|acc, g| acc + g);
+        if let Some(sum) = sum {
+            self.out.register(param.id, sum.div_scalar(n));
+        }
+    }
+}
+
+/// Gradients of `loss` averaged over `parts` equal micro-batches of `x` (rows split in order),
+/// with the mean loss value and the mean of the auxiliary output (DINO's teacher mean).
+///
+/// Each micro-batch runs forward and backward on its own copy of the parameters
+/// ([`Module::fork`]: fresh autodiff leaves, so the graphs stay independent) in parallel on the
+/// rayon pool; burn's CPU backend runs element-wise ops on the calling thread, so this is what
+/// puts the second core to work outside the matrix products. For a loss that is a mean over
+/// samples with equal counts per sample (MAE, I-JEPA, V-JEPA) the average is the whole-batch
+/// gradient. `parts = 1` is the plain whole-batch step.
+pub fn micro_batch_gradients<M, F>(
+    model: &M,
+    x: Tensor<5>,
+    parts: usize,
+    loss: F,
+) -> (GradientsParams, f64, Option<Tensor<2>>)
+where
+    M: Module + Sync,
+    F: Fn(&M, Tensor<5>, Range<usize>) -> (Tensor<1>, Option<Tensor<2>>) + Sync,
+{
+    let b = x.dims()[0];
+    if parts <= 1 {
+        let (l, aux) = loss(model, x, 0..b);
+        let value = l.clone().into_scalar::<f32>() as f64;
+        return (GradientsParams::from_grads(l.backward(), model), value, aux);
+    }
+    assert!(
+        b.is_multiple_of(parts),
+        "micro-batches must split the batch evenly"
+    );
+    let device = x.device();
+    let size = b / parts;
+    let results: Vec<(GradientsParams, f64, Option<Tensor<2>>)> = (0..parts)
+        .into_par_iter()
+        .map(|i| {
+            let rows = i * size..(i + 1) * size;
+            let part = model.clone().fork(&device);
+            let (l, aux) = loss(&part, x.clone().slice(rows.clone()), rows);
+            let value = l.clone().into_scalar::<f32>() as f64;
+            (GradientsParams::from_grads(l.backward(), &part), value, aux)
+        })
+        .collect();
+    let mut grads = Vec::with_capacity(parts);
+    let mut value = 0.0;
+    let mut aux_sum: Option<Tensor<2>> = None;
+    for (g, v, a) in results {
+        grads.push(g);
+        value += v;
+        aux_sum = match (aux_sum, a) {
+            (Some(s), Some(a)) => Some(s + a),
+            (None, a) => a,
+            (s, None) => s,
+        };
+    }
+    let mut avg = AverageGradients {
+        parts: &mut grads,
+        out: GradientsParams::new(),
+    };
+    model.visit(&mut avg);
+    let n = parts as f64;
+    (avg.out, value / n, aux_sum.map(|s| s.div_scalar(n)))
 }
 
 /// Scores the force probes of `recipe` on `data` for the recipe's randomly initialised encoder
@@ -282,7 +464,7 @@ pub fn optimizer(recipe: &Recipe) -> burn::optim::ModuleOptimizer {
 /// Options of one run beyond its recipe.
 #[derive(Debug, Clone)]
 pub struct RunOptions {
-    /// Dataset directories (generated or Sparsh pickles).
+    /// Datasets: directories (generated or Sparsh pickles) or Taxim packs.
     pub data: Vec<PathBuf>,
     /// Run directory.
     pub out: PathBuf,

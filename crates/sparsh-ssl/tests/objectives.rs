@@ -1,6 +1,9 @@
 //! One training step lowers each objective's loss on a fixed batch (same masks / views, the
-//! EMA teacher and the DINO centre held fixed so only the trained weights move).
+//! EMA teacher and the DINO centre held fixed so only the trained weights move), and a step
+//! split into micro-batches has the whole batch's gradient.
 
+use burn::module::{Module, ModuleVisitor, Param};
+use burn::optim::GradientsParams;
 use burn::prelude::*;
 use sparsh_ssl::data::HostBatch;
 use sparsh_ssl::recipe::Recipe;
@@ -87,9 +90,106 @@ fn ijepa_step_lowers_loss() {
 }
 
 #[test]
+fn vjepa_step_with_batch_standardized_targets_lowers_loss() {
+    one_step_lowers_loss(recipe(
+        "vjepa",
+        "[jepa]\npredictor_dim = 32\npredictor_depth = 1\npredictor_heads = 4\nema = [1.0, 1.0]\n\
+         target_norm = \"layer_batch\"",
+    ));
+}
+
+#[test]
 fn vjepa_step_lowers_loss() {
     one_step_lowers_loss(recipe(
         "vjepa",
         "[jepa]\npredictor_dim = 32\npredictor_depth = 1\npredictor_heads = 4\nema = [1.0, 1.0]",
+    ));
+}
+
+/// Every parameter's gradient, flattened, in visiting order.
+struct Flatten<'a> {
+    grads: &'a GradientsParams,
+    out: Vec<Vec<f32>>,
+}
+
+impl ModuleVisitor for Flatten<'_> {
+    fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+        if let Some(g) = self.grads.get::<D>(param.id) {
+            self.out.push(g.into_data().try_to_vec::<f32>().unwrap());
+        }
+    }
+}
+
+fn flat_gradients(model: &Trainee, grads: &GradientsParams) -> Vec<Vec<f32>> {
+    let mut f = Flatten {
+        grads,
+        out: Vec::new(),
+    };
+    match model {
+        Trainee::Mae(m) => m.visit(&mut f),
+        Trainee::Dino(m) => m.visit(&mut f),
+        Trainee::Jepa(m) => m.visit(&mut f),
+    }
+    f.out
+}
+
+/// The gradient averaged over 2 and 4 micro-batches (each on its own parameter copy, in
+/// parallel) equals the plain whole-batch gradient: the losses are means over samples with
+/// equal token counts per sample, so splitting the batch only reorders sums.
+fn micro_batches_match_whole_batch(mut recipe: Recipe) {
+    let device = Device::flex().autodiff();
+    let model = Trainee::init(&recipe, &device).unwrap();
+    let batch = fixed_batch(&recipe);
+    let x = || Tensor::<1>::from_floats(batch.values.as_slice(), &device).reshape(batch.shape);
+    recipe.optim.micro_batches = 1;
+    let (whole, whole_loss, _) = model.gradients(&recipe, x(), 0);
+    let whole = flat_gradients(&model, &whole);
+    assert!(!whole.is_empty());
+    for parts in [2, 4] {
+        recipe.optim.micro_batches = parts;
+        let (split, split_loss, _) = model.gradients(&recipe, x(), 0);
+        let split = flat_gradients(&model, &split);
+        assert_eq!(split.len(), whole.len(), "{parts} parts: parameter count");
+        assert!(
+            (split_loss - whole_loss).abs() <= 1e-5 * whole_loss.abs().max(1.0),
+            "{parts} parts: loss {split_loss} vs {whole_loss}"
+        );
+        for (i, (a, b)) in whole.iter().zip(&split).enumerate() {
+            let scale = a.iter().fold(0f32, |m, v| m.max(v.abs()));
+            let err = a.iter().zip(b).fold(0f32, |m, (u, v)| m.max((u - v).abs()));
+            assert!(
+                err <= 1e-4 * scale + 1e-9,
+                "{:?}, {parts} parts, parameter {i}: max error {err} of max |g| {scale}",
+                recipe.objective
+            );
+        }
+    }
+}
+
+#[test]
+fn mae_micro_batches_give_the_whole_batch_gradient() {
+    micro_batches_match_whole_batch(recipe(
+        "mae",
+        "[mae]\ndecoder_dim = 32\ndecoder_depth = 1\ndecoder_heads = 4",
+    ));
+}
+
+#[test]
+fn jepa_micro_batches_give_the_whole_batch_gradient() {
+    for objective in ["ijepa", "vjepa"] {
+        micro_batches_match_whole_batch(recipe(
+            objective,
+            "[jepa]\npredictor_dim = 32\npredictor_depth = 1\npredictor_heads = 4",
+        ));
+    }
+}
+
+#[test]
+fn dino_micro_batches_give_the_whole_batch_gradient_without_batch_statistics() {
+    // without the head's batch norm and KoLeo the DINO loss is a per-sample mean too
+    micro_batches_match_whole_batch(recipe(
+        "dino",
+        "num_registers = 1\n[dino]\nhead_hidden = 64\nhead_bottleneck = 16\n\
+         num_prototypes = 128\nhead_batch_norm = false\nkoleo_weight = 0.0\n[dino.views]\nnum_local = 2",
     ));
 }
