@@ -9,7 +9,7 @@ use burn::tensor::activation::{gelu, log_softmax, softmax};
 
 use crate::ema::ema_update;
 use crate::masks::DinoViews;
-use crate::vit::{Vit, VitConfig, gather_tokens, index_tensor};
+use crate::vit::{Vit, VitConfig, batch_standardize, gather_tokens, index_tensor};
 
 /// Configuration of [`Dino`] (official: hidden 2048, bottleneck 256, 65 536 prototypes,
 /// student temperature 0.1, centre momentum 0.9).
@@ -39,6 +39,24 @@ pub struct DinoConfig {
     /// (DINOv2: 0.1; DINO: 0).
     #[config(default = 0.0)]
     pub koleo_weight: f64,
+    /// How the teacher's prototype scores become targets.
+    #[config(default = "TeacherNorm::Center")]
+    pub teacher_norm: TeacherNorm,
+}
+
+/// How the teacher's prototype scores are normalized before its sharpened softmax.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum TeacherNorm {
+    /// Minus a running centre of the teacher outputs (official DINO).
+    Center,
+    /// Each prototype's score standardized over the step's teacher batch (all global views):
+    /// `(t − mean_b t) / std_b t`. The centre only removes the shared part, so when the samples
+    /// differ by little (difference images: mostly flat background) the centred scores are
+    /// nearly equal and the teacher's softmax nearly uniform, and the student follows it there;
+    /// standardized scores keep the sample-specific part at unit scale, so the teacher stays
+    /// sharp and every prototype is high for some samples. Use a temperature near 0.25.
+    Batch,
 }
 
 /// Batch normalization of a head layer with the batch's own statistics (the head only runs in
@@ -136,6 +154,9 @@ pub struct Dino {
     /// Weight of the KoLeo term.
     #[module(skip)]
     pub koleo_weight: f64,
+    /// Teacher score normalization.
+    #[module(skip)]
+    pub teacher_norm: TeacherNorm,
 }
 
 impl DinoConfig {
@@ -182,6 +203,7 @@ impl DinoConfig {
             student_temp: self.student_temp,
             center_momentum: self.center_momentum,
             koleo_weight: self.koleo_weight,
+            teacher_norm: self.teacher_norm,
         }
     }
 }
@@ -211,6 +233,24 @@ pub fn koleo(x: Tensor<2>) -> Tensor<1> {
     distance.add_scalar(1e-8).log().mean().neg()
 }
 
+/// The teacher's target distribution from its prototype scores `t` (`[rows, prototypes]`):
+/// `softmax((t − centre) / τ)` or, under [`TeacherNorm::Batch`], `softmax(standardize_rows(t) / τ)`.
+pub fn teacher_targets(
+    t: Tensor<2>,
+    center: Tensor<2>,
+    norm: TeacherNorm,
+    temperature: f64,
+) -> Tensor<2> {
+    let scores = match norm {
+        TeacherNorm::Center => t - center,
+        TeacherNorm::Batch => {
+            let [n, k] = t.dims();
+            batch_standardize(t.reshape([n, 1, k])).reshape([n, k])
+        }
+    };
+    softmax(scores.div_scalar(temperature), 1)
+}
+
 fn cls(vit: &Vit, tokens: Tensor<3>, views: &[Vec<Vec<usize>>]) -> Tensor<2> {
     let device = tokens.device();
     let rows: Vec<Vec<usize>> = views.iter().flatten().cloned().collect();
@@ -227,7 +267,8 @@ impl Dino {
     /// the centre update.
     ///
     /// ```text
-    /// P_t = softmax((t − c) / τ_t),  log P_s = log_softmax(s / τ_s)
+    /// P_t = softmax((t − c) / τ_t)  [TeacherNorm::Batch: softmax(standardize_batch(t) / τ_t)]
+    /// log P_s = log_softmax(s / τ_s)
     /// loss = mean_{i ∈ global, v ≠ i} mean_batch( −Σ_k P_t,i · log P_s,v )
     ///        + koleo_weight · Σ_{i ∈ global} KoLeo(student [cls] of view i)   (as DINOv2)
     /// ```
@@ -250,7 +291,7 @@ impl Dino {
             .forward(cls(&self.teacher_encoder, teacher_tokens, &views.global))
             .detach();
         let t_mean = t_out.clone().mean_dim(0);
-        let t_prob = softmax((t_out - self.center.val()).div_scalar(teacher_temp), 1);
+        let t_prob = teacher_targets(t_out, self.center.val(), self.teacher_norm, teacher_temp);
         let s_cls = cls(&self.encoder, student_tokens.clone(), &views.global);
         let s_global = self.head.forward(s_cls.clone());
         let mut s_all = vec![s_global];
@@ -383,6 +424,45 @@ mod tests {
             normed < uniform - 1.0,
             "batch-normed head: entropy {normed} vs ln K {uniform}"
         );
+    }
+
+    /// Teacher scores that differ across the batch by 1e-3: centring leaves a uniform target
+    /// (entropy ln K), batch standardization a sharp one.
+    #[test]
+    fn batch_standardized_teacher_stays_sharp_on_nearly_identical_samples() {
+        let device = Device::flex();
+        let (n, k) = (32, 64);
+        let t = seeded(&device, 8, || {
+            Tensor::<2>::random(
+                [1, k],
+                burn::tensor::Distribution::Uniform(-1.0, 1.0),
+                &device,
+            )
+            .expand([n, k])
+                + Tensor::<2>::random(
+                    [n, k],
+                    burn::tensor::Distribution::Normal(0.0, 1e-3),
+                    &device,
+                )
+        });
+        let entropy = |p: Tensor<2>| {
+            let plogp = p.clone() * p.add_scalar(1e-20).log();
+            plogp.sum_dim(1).mean().neg().into_scalar::<f32>() as f64
+        };
+        let centre = t.clone().mean_dim(0);
+        let centred = entropy(teacher_targets(
+            t.clone(),
+            centre.clone(),
+            TeacherNorm::Center,
+            0.04,
+        ));
+        let batch = entropy(teacher_targets(t, centre, TeacherNorm::Batch, 0.25));
+        let uniform = (k as f64).ln();
+        assert!(
+            centred > uniform - 0.01,
+            "centred: {centred} vs ln K {uniform}"
+        );
+        assert!(batch < uniform - 2.0, "batch: {batch} vs ln K {uniform}");
     }
 
     #[test]

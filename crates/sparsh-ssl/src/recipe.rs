@@ -27,7 +27,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::Error;
 use crate::data::{AugmentConfig, Stacking};
-use crate::dino::DinoConfig;
+use crate::dino::{DinoConfig, TeacherNorm};
 use crate::jepa::{JepaConfig, JepaLoss, TargetNorm};
 use crate::mae::MaeConfig;
 use crate::masks::{DinoViewConfig, IjepaMaskConfig, TubeMaskConfig, default_tube_masks};
@@ -130,6 +130,9 @@ pub struct DinoSection {
     /// Weight of DINOv2's KoLeo term on the student's `[cls]` features, summed over the global
     /// views (DINOv2: 0.1; official DINO: 0).
     pub koleo_weight: f64,
+    /// Teacher targets: `"center"` (official running centre) or `"batch"` (each prototype's
+    /// score standardized over the step's batch, see [`TeacherNorm`]).
+    pub teacher_norm: TeacherNorm,
     /// Views.
     pub views: DinoViewConfig,
 }
@@ -147,6 +150,7 @@ impl Default for DinoSection {
             head_batch_norm: false,
             ema: [0.998, 0.998],
             koleo_weight: 0.0,
+            teacher_norm: TeacherNorm::Center,
             views: DinoViewConfig::default(),
         }
     }
@@ -486,7 +490,8 @@ impl Recipe {
             .with_student_temp(d.student_temp)
             .with_center_momentum(d.center_momentum)
             .with_head_batch_norm(d.head_batch_norm)
-            .with_koleo_weight(d.koleo_weight))
+            .with_koleo_weight(d.koleo_weight)
+            .with_teacher_norm(d.teacher_norm))
     }
 
     /// I-JEPA / V-JEPA configuration.

@@ -212,6 +212,16 @@ pub fn patchify(x: Tensor<5>, patch: usize, tubelet: usize) -> Tensor<3> {
         .reshape([b, gt * gh * gw, c * tubelet * patch * patch])
 }
 
+/// `h` standardized per (token, feature) over the batch: `(h − mean_b h) / √(var_b h + 1e-8)`.
+///
+/// # Shapes
+/// - `h`: `[batch, tokens, dim]` → same
+pub fn batch_standardize(h: Tensor<3>) -> Tensor<3> {
+    let c = h.clone() - h.mean_dim(0);
+    let var = c.clone().powi_scalar(2).mean_dim(0);
+    c / (var + 1e-8).sqrt()
+}
+
 /// Picks tokens per sample.
 ///
 /// # Shapes
@@ -512,5 +522,32 @@ mod tests {
         assert_eq!(out.registers.unwrap().dims(), [2, 2, 32]);
         let keep = index_tensor(&[vec![0, 5, 7], vec![11, 1, 2]], &device);
         assert_eq!(vit.forward(x, Some(keep)).patches.dims(), [2, 3, 32]);
+    }
+
+    /// Per (token, feature): zero mean and unit variance over the batch, whatever the shared
+    /// offset and scale; a feature constant over the batch stays 0 instead of dividing by 0.
+    #[test]
+    fn batch_standardize_removes_the_shared_pattern() {
+        let device = Device::flex();
+        // [batch 4, tokens 2, dim 2]: token 0 feature 0 = 10 + small sample term; the rest constant
+        let v = [
+            10.0, 3.0, 3.0, 3.0, 10.002, 3.0, 3.0, 3.0, 9.999, 3.0, 3.0, 3.0, 10.001, 3.0, 3.0, 3.0,
+        ];
+        let h = Tensor::<1>::from_floats(v, &device).reshape([4, 2, 2]);
+        let out: Vec<f32> = batch_standardize(h).into_data().try_to_vec().unwrap();
+        let col: Vec<f64> = (0..4).map(|b| out[b * 4] as f64).collect();
+        let mean = col.iter().sum::<f64>() / 4.0;
+        let var = col.iter().map(|c| (c - mean).powi(2)).sum::<f64>() / 4.0;
+        assert!(mean.abs() < 1e-3 && (var - 1.0).abs() < 0.02, "{col:?}");
+        // ordering of the samples kept: 10.002 highest, 9.999 lowest
+        assert!(
+            col[1] > col[3] && col[3] > col[0] && col[0] > col[2],
+            "{col:?}"
+        );
+        for b in 0..4 {
+            for k in 1..4 {
+                assert_eq!(out[b * 4 + k], 0.0);
+            }
+        }
     }
 }

@@ -82,6 +82,16 @@ fn dino_step_lowers_loss() {
 }
 
 #[test]
+fn dino_step_with_batch_standardized_teacher_lowers_loss() {
+    one_step_lowers_loss(recipe(
+        "dino",
+        "num_registers = 1\n[dino]\nhead_hidden = 64\nhead_bottleneck = 16\nnum_prototypes = 128\n\
+         ema = [1.0, 1.0]\ncenter_momentum = 1.0\nteacher_norm = \"batch\"\n\
+         teacher_temp = [0.25, 0.25]\n[dino.views]\nnum_local = 4",
+    ));
+}
+
+#[test]
 fn ijepa_step_lowers_loss() {
     one_step_lowers_loss(recipe(
         "ijepa",
