@@ -13,6 +13,7 @@
 //! [optim]
 //! steps = 1500
 //! batch_size = 32
+//! micro_batches = 2            # forward + backward of each half in parallel, same gradient
 //! lr = 1.5e-4
 //! [data]
 //! frame_offsets = [0, 5]       # I_t ⊕ I_{t−5}
