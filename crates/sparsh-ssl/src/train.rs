@@ -182,7 +182,9 @@ impl Trainee {
         }
     }
 
-    /// Gradients of the step's loss over `optim.micro_batches` micro-batches of `x`.
+    /// Gradients of step `step`'s loss on `x`, taken over `optim.micro_batches` micro-batches
+    /// ([`micro_batch_gradients`]): the gradients, the loss value and, for DINO, the teacher
+    /// mean for the centre update.
     pub fn gradients(
         &self,
         recipe: &Recipe,
