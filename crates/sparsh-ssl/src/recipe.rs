@@ -205,9 +205,11 @@ pub struct OptimSection {
     pub batch_size: usize,
     /// Equal micro-batches the step's batch is split into, each forward and backward on its
     /// own thread with the gradients averaged (the same gradient for the mean losses of MAE and
-    /// the JEPAs; DINO's centre, head batch norm and KoLeo then see one micro-batch at a time,
-    /// as on one GPU of a multi-GPU run). The split is fixed by the recipe, never by the
-    /// thread count, so results do not depend on the number of threads.
+    /// the JEPAs; batch statistics — DINO's head batch norm, KoLeo and `teacher_norm = "batch"`,
+    /// JEPA `target_norm = "layer_batch"` — then see one micro-batch at a time, as on one GPU
+    /// of a multi-GPU run; DINO's centre is the mean over the parts, as for the whole batch).
+    /// The split is fixed by the recipe, never by the thread count, so results do not depend
+    /// on the number of threads.
     pub micro_batches: usize,
     /// Peak learning rate.
     pub lr: f64,
@@ -409,10 +411,12 @@ impl Recipe {
         let parts = self.optim.micro_batches;
         if parts == 0 || !self.optim.batch_size.is_multiple_of(parts) {
             return bad(format!(
-                "optim.micro_batches: {parts} does not divide optim.batch_size {}",
+                "optim.micro_batches must be a positive divisor of optim.batch_size {}, got {parts}",
                 self.optim.batch_size
             ));
         }
+        // batch statistics need at least two samples in each micro-batch
+        let per_part = self.optim.batch_size / parts;
         if self.log.checkpoint_every == 0 {
             return bad("log.checkpoint_every must be positive".into());
         }
@@ -444,11 +448,15 @@ impl Recipe {
                     return bad("dino.views.num_global must be at least 2".into());
                 }
                 let w = self.dino.koleo_weight;
-                let per_part = self.optim.batch_size / self.optim.micro_batches;
                 if !(w.is_finite() && w >= 0.0) || (w > 0.0 && per_part < 2) {
                     return bad(format!(
                         "dino.koleo_weight must be ≥ 0 (and needs ≥ 2 samples per micro-batch), got {w}"
                     ));
+                }
+                if self.dino.teacher_norm == TeacherNorm::Batch && per_part < 2 {
+                    return bad(
+                        "dino.teacher_norm = \"batch\" needs ≥ 2 samples per micro-batch".into(),
+                    );
                 }
             }
             ObjectiveKind::Ijepa | ObjectiveKind::Vjepa => {
@@ -458,6 +466,12 @@ impl Recipe {
                 {
                     return bad(
                         "jepa.predictor_dim must be a multiple of 8 and of jepa.predictor_heads"
+                            .into(),
+                    );
+                }
+                if j.target_norm == TargetNorm::LayerBatch && per_part < 2 {
+                    return bad(
+                        "jepa.target_norm = \"layer_batch\" needs ≥ 2 samples per micro-batch"
                             .into(),
                     );
                 }

@@ -392,23 +392,24 @@ where
         .collect();
     let mut grads = Vec::with_capacity(parts);
     let mut value = 0.0;
-    let mut aux_sum: Option<Tensor<2>> = None;
+    let mut auxes = Vec::with_capacity(parts);
     for (g, v, a) in results {
         grads.push(g);
         value += v;
-        aux_sum = match (aux_sum, a) {
-            (Some(s), Some(a)) => Some(s + a),
-            (None, a) => a,
-            (s, None) => s,
-        };
+        auxes.push(a);
     }
+    // every part reports an auxiliary output or none does (it comes from the same objective)
+    let aux = auxes
+        .into_iter()
+        .collect::<Option<Vec<_>>>()
+        .and_then(|a| a.into_iter().reduce(|acc, t| acc + t));
     let mut avg = AverageGradients {
         parts: &mut grads,
         out: GradientsParams::new(),
     };
     model.visit(&mut avg);
     let n = parts as f64;
-    (avg.out, value / n, aux_sum.map(|s| s.div_scalar(n)))
+    (avg.out, value / n, aux.map(|s| s.div_scalar(n)))
 }
 
 /// Scores the force probes of `recipe` on `data` for the recipe's randomly initialised encoder
