@@ -272,7 +272,7 @@ pub fn attentive_score(
     let (ymean, ystd) = column_stats(&train, 3, 1e-9, |i, k| y[i][k]);
     let heads = if d % 64 == 0 { d / 64 } else { 1 };
     let device = Device::flex().autodiff();
-    let mut probe = crate::train::seeded(&device, seed, || {
+    let mut probe = crate::train::seeded_module(&device, seed, || {
         AttentiveProbeConfig::new(d, heads).init(&device)
     });
     let mut optim = AdamWConfig::new().with_weight_decay(0.01).init();

@@ -43,6 +43,28 @@ pub fn seeded<T>(device: &Device, seed: u64, f: impl FnOnce() -> T) -> T {
     f()
 }
 
+/// Draws every parameter of `module` that is still uninitialized: burn initializes parameters
+/// lazily, on first use, so without this the draws happen wherever the module is first used
+/// (another thread, after another seeding) instead of under [`seeded`].
+pub fn draw_parameters<M: Module>(module: &M) {
+    struct Draw;
+    impl ModuleVisitor for Draw {
+        fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+            let _ = param.val();
+        }
+    }
+    module.visit(&mut Draw);
+}
+
+/// [`seeded`] for a module initialization, with every parameter drawn under the seed.
+pub fn seeded_module<M: Module>(device: &Device, seed: u64, f: impl FnOnce() -> M) -> M {
+    seeded(device, seed, || {
+        let module = f();
+        draw_parameters(&module);
+        module
+    })
+}
+
 /// Writes `bytes` to `path` through a temporary file and a rename.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), Error> {
     let tmp = path.with_extension("tmp-write");
@@ -92,15 +114,15 @@ impl Trainee {
                 (None, None, Some(recipe.jepa_config()?))
             }
         };
-        Ok(seeded(device, recipe.seed, || {
-            if let Some(c) = mae {
-                Trainee::Mae(c.init(device))
-            } else if let Some(c) = dino {
-                Trainee::Dino(c.init(device))
-            } else {
-                Trainee::Jepa(jepa.expect("one objective").init(device))
-            }
-        }))
+        let seed = recipe.seed;
+        Ok(if let Some(c) = mae {
+            Trainee::Mae(seeded_module(device, seed, || c.init(device)))
+        } else if let Some(c) = dino {
+            Trainee::Dino(seeded_module(device, seed, || c.init(device)))
+        } else {
+            let c = jepa.expect("one objective");
+            Trainee::Jepa(seeded_module(device, seed, || c.init(device)))
+        })
     }
 
     /// The encoder being pretrained.

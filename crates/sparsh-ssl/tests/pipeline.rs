@@ -6,7 +6,7 @@ use std::path::Path;
 use image::{Rgb, RgbImage};
 use sparsh_ssl::data::Dataset;
 use sparsh_ssl::recipe::Recipe;
-use sparsh_ssl::train::{RunOptions, probe_encoders, run, seeded};
+use sparsh_ssl::train::{RunOptions, probe_encoders, run, seeded_module};
 use sparsh_ssl::weights::{load_encoder, save_encoder};
 
 /// burn's random generator is process-wide and parameters draw from it when first used, so
@@ -140,7 +140,7 @@ fn resume_continues_the_same_loss_curve() {
     let enc = r.encoder_config().unwrap();
     let device = burn::prelude::Device::flex();
     load_encoder(
-        seeded(&device, 0, || enc.init(&device)),
+        seeded_module(&device, 0, || enc.init(&device)),
         &out.join("encoder.safetensors"),
         None,
     )
@@ -279,28 +279,36 @@ fn bad_inputs_are_one_line_errors() {
     let device = burn::prelude::Device::flex();
     let enc = r.encoder_config().unwrap();
     let file = tmp.path().join("enc.safetensors");
-    save_encoder(&seeded(&device, 0, || enc.init(&device)), &file).unwrap();
+    save_encoder(&seeded_module(&device, 0, || enc.init(&device)), &file).unwrap();
     let bytes = std::fs::read(&file).unwrap();
     let cut = tmp.path().join("cut.safetensors");
     std::fs::write(&cut, &bytes[..bytes.len() / 2]).unwrap();
     one_line(
-        load_encoder(seeded(&device, 0, || enc.init(&device)), &cut, None)
+        load_encoder(seeded_module(&device, 0, || enc.init(&device)), &cut, None)
             .unwrap_err()
             .to_string(),
         "cut.safetensors",
     );
     let wider = enc.clone().with_embed_dim(64);
     one_line(
-        load_encoder(seeded(&device, 0, || wider.init(&device)), &file, None)
-            .unwrap_err()
-            .to_string(),
+        load_encoder(
+            seeded_module(&device, 0, || wider.init(&device)),
+            &file,
+            None,
+        )
+        .unwrap_err()
+        .to_string(),
         "shape",
     );
     let deeper = enc.clone().with_depth(1);
     one_line(
-        load_encoder(seeded(&device, 0, || deeper.init(&device)), &file, None)
-            .unwrap_err()
-            .to_string(),
+        load_encoder(
+            seeded_module(&device, 0, || deeper.init(&device)),
+            &file,
+            None,
+        )
+        .unwrap_err()
+        .to_string(),
         "blocks.1",
     );
 
