@@ -2,7 +2,8 @@
 
 The same ViT as benches/train_step.rs: 6×96×96 input, patch 8 (144 tokens), width 192, 6 blocks,
 3 heads, MLP ratio 4, a linear pixel head, MSE, Adam, batch 32, on the CPU.
-    pip install torch numpy && python3 benches/torch_step.py [threads]
+    pip install torch numpy && python3 benches/torch_step.py [threads] [tiny|small]
+(small: width 384, 12 blocks, 6 heads, as the bench's `reference_small`).
 Prints seconds per step (median of 10 after 3 warm-up steps), images/s and the mean CPU time per
 step (steadier than wall time on a shared machine).
 """
@@ -16,7 +17,9 @@ threads = int(sys.argv[1]) if len(sys.argv) > 1 else 2
 torch.set_num_threads(threads)
 torch.manual_seed(0)
 
-C, H, P, D, DEPTH, HEADS, B = 6, 96, 8, 192, 6, 3, 32
+size = sys.argv[2] if len(sys.argv) > 2 else "tiny"
+D, DEPTH, HEADS = {"tiny": (192, 6, 3), "small": (384, 12, 6)}[size]
+C, H, P, B = 6, 96, 8, 32
 N = (H // P) ** 2
 
 
@@ -75,6 +78,6 @@ for i in range(13):
 times.sort()
 step = times[len(times) // 2]
 print(
-    f"torch {torch.__version__} threads {threads}: {step:.3f} s/step, {B / step:.1f} images/s, "
+    f"torch {torch.__version__} {size} threads {threads}: {step:.3f} s/step, {B / step:.1f} images/s, "
     f"{cpu / 10:.3f} CPU s/step"
 )

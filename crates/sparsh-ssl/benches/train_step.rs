@@ -1,7 +1,8 @@
 //! Training-step benchmark: the reference ViT of `benches/torch_step.py` (6×96×96, patch 8,
 //! width 192, 6 blocks, linear pixel head, MSE, Adam, batch 32), then images/s of one step of each
 //! CPU recipe's objective. `cargo bench -p sparsh-ssl [-- NAME …]` (release; names `reference`,
-//! `mae`, `dino`, `ijepa`, `vjepa`). Prints medians of 5 steps after 2 warm-up steps, and for the
+//! `reference_small` (the same step with ViT-small: width 384, 12 blocks, 6 heads), `mae`,
+//! `dino`, `ijepa`, `vjepa`). Prints medians of 5 steps after 2 warm-up steps, and for the
 //! reference the mean CPU time per step.
 
 use std::path::Path;
@@ -45,13 +46,16 @@ fn median(mut v: Vec<f64>) -> f64 {
     v[v.len() / 2]
 }
 
-/// The reference step with the batch split into `parts` micro-batches
-/// ([`micro_batch_gradients`], the trainer's path; 1 = the plain whole-batch step).
-fn reference(device: &Device, parts: usize) -> (f64, f64) {
-    let cfg = VitConfig::new([96, 96], 8).with_depth(6);
+/// The reference step of a ViT of `width` / `depth` / `heads` with the batch split into `parts`
+/// micro-batches ([`micro_batch_gradients`], the trainer's path; 1 = the plain whole-batch step).
+fn reference(device: &Device, [width, depth, heads]: [usize; 3], parts: usize) -> (f64, f64) {
+    let cfg = VitConfig::new([96, 96], 8)
+        .with_embed_dim(width)
+        .with_depth(depth)
+        .with_num_heads(heads);
     let mut model = Reference {
         vit: cfg.init(device),
-        head: LinearConfig::new(192, cfg.patch_dim()).init(device),
+        head: LinearConfig::new(width, cfg.patch_dim()).init(device),
     };
     let mut optim = AdamConfig::new().init();
     let x = Tensor::<5>::random(
@@ -123,11 +127,18 @@ fn main() {
         .collect();
     let wanted = |name: &str| only.is_empty() || only.iter().any(|o| o == name);
     let device = Device::flex().autodiff();
-    if wanted("reference") {
+    // the reference ViT-tiny of torch_step.py, and ViT-small (width 384, 12 blocks, 6 heads)
+    for (name, size) in [
+        ("reference", [192, 6, 3]),
+        ("reference_small", [384, 12, 6]),
+    ] {
+        if !wanted(name) {
+            continue;
+        }
         for parts in [1, 2] {
-            let (s, cpu) = reference(&device, parts);
+            let (s, cpu) = reference(&device, size, parts);
             println!(
-                "reference ViT (burn flex), {parts} micro-batch(es): {s:.3} s/step, {:.1} images/s, {cpu:.3} CPU s/step",
+                "{name} (burn flex), {parts} micro-batch(es): {s:.3} s/step, {:.1} images/s, {cpu:.3} CPU s/step",
                 32.0 / s
             );
         }
