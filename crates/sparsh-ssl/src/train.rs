@@ -75,7 +75,7 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), Error> {
 /// A model under training, one variant per objective.
 // One value per run: boxing the larger variants would buy nothing.
 #[allow(clippy::large_enum_variant)]
-#[derive(Debug)]
+#[derive(Module, Debug)]
 pub enum Trainee {
     /// MAE.
     Mae(Mae),
@@ -179,12 +179,7 @@ impl Trainee {
         step: usize,
     ) -> (Tensor<1>, Option<Tensor<2>>) {
         let b = x.dims()[0];
-        let draw = self.draw(recipe, b, step);
-        match self {
-            Trainee::Mae(m) => m.draw_loss(x, &draw, 0..b),
-            Trainee::Dino(m) => m.draw_loss(x, &draw, 0..b),
-            Trainee::Jepa(m) => m.draw_loss(x, &draw, 0..b),
-        }
+        self.draw_loss(x, &self.draw(recipe, b, step), 0..b)
     }
 
     /// Updates after the optimizer step of `step`: teacher / target EMA, DINO centre.
@@ -215,17 +210,36 @@ impl Trainee {
     ) -> (GradientsParams, f64, Option<Tensor<2>>) {
         let b = x.dims()[0];
         let draw = self.draw(recipe, b, step);
-        let parts = recipe.optim.micro_batches;
-        match self {
-            Trainee::Mae(m) => {
-                micro_batch_gradients(m, x, parts, |m, x, r| m.draw_loss(x, &draw, r))
+        micro_batch_gradients(self, x, recipe.optim.micro_batches, |m, x, r| {
+            m.draw_loss(x, &draw, r)
+        })
+    }
+
+    /// Loss on `x`, the batch rows `rows` of a step whose masks / views are `draw`, and, for
+    /// DINO, the teacher mean.
+    fn draw_loss(
+        &self,
+        x: Tensor<5>,
+        draw: &StepDraw,
+        rows: Range<usize>,
+    ) -> (Tensor<1>, Option<Tensor<2>>) {
+        match (self, draw) {
+            (Trainee::Mae(m), StepDraw::Mae(mask)) => (m.loss(x, &mask.rows(rows)), None),
+            (
+                Trainee::Dino(m),
+                StepDraw::Dino {
+                    views,
+                    teacher_temp,
+                },
+            ) => {
+                let (loss, mean) = m.loss(x, &views.rows(rows), *teacher_temp);
+                (loss, Some(mean))
             }
-            Trainee::Dino(m) => {
-                micro_batch_gradients(m, x, parts, |m, x, r| m.draw_loss(x, &draw, r))
+            (Trainee::Jepa(m), StepDraw::Jepa(sets)) => {
+                let sets: Vec<JepaMasks> = sets.iter().map(|s| s.rows(rows.clone())).collect();
+                (m.loss(x, &sets), None)
             }
-            Trainee::Jepa(m) => {
-                micro_batch_gradients(m, x, parts, |m, x, r| m.draw_loss(x, &draw, r))
-            }
+            _ => unreachable!("a step's draw comes from the same objective"),
         }
     }
 
@@ -240,12 +254,7 @@ impl Trainee {
     ) -> (Self, f64) {
         let x = Tensor::<1>::from_floats(batch.values.as_slice(), device).reshape(batch.shape);
         let (grads, value, aux) = self.gradients(recipe, x, batch.step);
-        let lr = recipe.optim.lr_at(batch.step);
-        let next = match self {
-            Trainee::Mae(m) => Trainee::Mae(optim.step(lr, m, grads)),
-            Trainee::Dino(m) => Trainee::Dino(optim.step(lr, m, grads)),
-            Trainee::Jepa(m) => Trainee::Jepa(optim.step(lr, m, grads)),
-        };
+        let next = optim.step(recipe.optim.lr_at(batch.step), self, grads);
         (next.after_step(recipe, batch.step, aux), value)
     }
 
@@ -287,67 +296,6 @@ pub enum StepDraw {
     },
     /// JEPA context and target sets (one per I-JEPA step, one per tube-mask kind in V-JEPA).
     Jepa(Vec<JepaMasks>),
-}
-
-/// An objective's loss on the batch rows `rows` of a step, given the step's draw.
-trait Objective {
-    /// Loss on `x` (the rows `rows` of the batch) and, for DINO, the teacher mean.
-    fn draw_loss(
-        &self,
-        x: Tensor<5>,
-        draw: &StepDraw,
-        rows: Range<usize>,
-    ) -> (Tensor<1>, Option<Tensor<2>>);
-}
-
-const DRAW_MISMATCH: &str = "a step's draw comes from the same objective";
-
-impl Objective for Mae {
-    fn draw_loss(
-        &self,
-        x: Tensor<5>,
-        draw: &StepDraw,
-        rows: Range<usize>,
-    ) -> (Tensor<1>, Option<Tensor<2>>) {
-        let StepDraw::Mae(mask) = draw else {
-            unreachable!("{DRAW_MISMATCH}")
-        };
-        (self.loss(x, &mask.rows(rows)), None)
-    }
-}
-
-impl Objective for Dino {
-    fn draw_loss(
-        &self,
-        x: Tensor<5>,
-        draw: &StepDraw,
-        rows: Range<usize>,
-    ) -> (Tensor<1>, Option<Tensor<2>>) {
-        let StepDraw::Dino {
-            views,
-            teacher_temp,
-        } = draw
-        else {
-            unreachable!("{DRAW_MISMATCH}")
-        };
-        let (loss, mean) = self.loss(x, &views.rows(rows), *teacher_temp);
-        (loss, Some(mean))
-    }
-}
-
-impl Objective for Jepa {
-    fn draw_loss(
-        &self,
-        x: Tensor<5>,
-        draw: &StepDraw,
-        rows: Range<usize>,
-    ) -> (Tensor<1>, Option<Tensor<2>>) {
-        let StepDraw::Jepa(sets) = draw else {
-            unreachable!("{DRAW_MISMATCH}")
-        };
-        let sets: Vec<JepaMasks> = sets.iter().map(|s| s.rows(rows.clone())).collect();
-        (self.loss(x, &sets), None)
-    }
 }
 
 /// Sums one parameter's gradient over the micro-batches and divides by their count.

@@ -135,16 +135,8 @@ fn flat_gradients(model: &Trainee, grads: &GradientsParams) -> Vec<Option<Vec<f3
         grads,
         out: Vec::new(),
     };
-    visit(model, &mut f);
+    model.visit(&mut f);
     f.out
-}
-
-fn visit(model: &Trainee, visitor: &mut impl ModuleVisitor) {
-    match model {
-        Trainee::Mae(m) => m.visit(visitor),
-        Trainee::Dino(m) => m.visit(visitor),
-        Trainee::Jepa(m) => m.visit(visitor),
-    }
 }
 
 /// Every parameter's value, flattened, in visiting order.
@@ -184,7 +176,7 @@ fn training_gives_the_same_bits_on_one_and_two_threads() {
                 losses.push(loss.to_bits());
             }
             let mut w = Weights(Vec::new());
-            visit(&model, &mut w);
+            model.visit(&mut w);
             (losses, w.0)
         })
     };
