@@ -9,7 +9,7 @@ use burn::tensor::activation::{gelu, log_softmax, softmax};
 
 use crate::ema::ema_update;
 use crate::masks::DinoViews;
-use crate::vit::{Vit, VitConfig, batch_standardize, gather_tokens, index_tensor};
+use crate::vit::{Vit, VitConfig, VitOutput, batch_standardize, gather_tokens, index_tensor};
 
 /// Configuration of [`Dino`] (official: hidden 2048, bottleneck 256, 65 536 prototypes,
 /// student temperature 0.1, centre momentum 0.9).
@@ -42,6 +42,10 @@ pub struct DinoConfig {
     /// How the teacher's prototype scores become targets.
     #[config(default = "TeacherNorm::Center")]
     pub teacher_norm: TeacherNorm,
+    /// Weight of the iBOT masked-patch term (DINOv2: 1; DINO: 0). Needs masked global views
+    /// and `TeacherNorm::Batch`.
+    #[config(default = 0.0)]
+    pub ibot_weight: f64,
 }
 
 /// How the teacher's prototype scores are normalized before its sharpened softmax.
@@ -157,6 +161,11 @@ pub struct Dino {
     /// Teacher score normalization.
     #[module(skip)]
     pub teacher_norm: TeacherNorm,
+    /// Learned token `[1, 1, dim]` the student sees at masked positions (iBOT only).
+    pub mask_token: Option<Param<Tensor<3>>>,
+    /// Weight of the iBOT term.
+    #[module(skip)]
+    pub ibot_weight: f64,
 }
 
 impl DinoConfig {
@@ -204,6 +213,14 @@ impl DinoConfig {
             center_momentum: self.center_momentum,
             koleo_weight: self.koleo_weight,
             teacher_norm: self.teacher_norm,
+            mask_token: (self.ibot_weight > 0.0).then(|| {
+                Param::from_tensor(Tensor::random(
+                    [1, 1, self.encoder.embed_dim],
+                    burn::tensor::Distribution::Normal(0.0, 0.02),
+                    device,
+                ))
+            }),
+            ibot_weight: self.ibot_weight,
         }
     }
 }
@@ -251,14 +268,52 @@ pub fn teacher_targets(
     softmax(scores.div_scalar(temperature), 1)
 }
 
-fn cls(vit: &Vit, tokens: Tensor<3>, views: &[Vec<Vec<usize>>]) -> Tensor<2> {
+/// The tokens of each view of each sample, `[views × batch, k, dim]`.
+fn view_tokens(tokens: Tensor<3>, views: &[Vec<Vec<usize>>]) -> Tensor<3> {
     let device = tokens.device();
     let rows: Vec<Vec<usize>> = views.iter().flatten().cloned().collect();
     let batch = tokens.repeat_dim(0, views.len());
-    let out = vit.forward_tokens(gather_tokens(batch, index_tensor(&rows, &device)));
-    let reg = out.registers.expect("DINO encoder has a register token");
+    gather_tokens(batch, index_tensor(&rows, &device))
+}
+
+/// The `[cls]` (first register token) `[rows, dim]` of encoded views.
+fn cls(out: &VitOutput) -> Tensor<2> {
+    let reg = out
+        .registers
+        .clone()
+        .expect("DINO encoder has a register token");
     let [b, _, d] = reg.dims();
     reg.narrow(1, 0, 1).reshape([b, d])
+}
+
+/// iBOT masking: the view tokens `tokens` (`[rows, k, dim]`, from positions `views`) with the
+/// positions `masked` (`[rows, m]`, within each view) replaced by `mask_token` plus their
+/// position embedding.
+fn mask_view_tokens(
+    tokens: Tensor<3>,
+    pos_embed: Tensor<3>,
+    views: &[Vec<Vec<usize>>],
+    masked: &[Vec<usize>],
+    mask_token: Tensor<3>,
+) -> Tensor<3> {
+    let [rows, k, d] = tokens.dims();
+    let device = tokens.device();
+    let mut keep = vec![1.0f32; rows * k];
+    for (r, m) in masked.iter().enumerate() {
+        for &i in m {
+            keep[r * k + i] = 0.0;
+        }
+    }
+    let keep = Tensor::<1>::from_floats(keep.as_slice(), &device).reshape([rows, k, 1]);
+    let n = pos_embed.dims()[1];
+    let pos = view_tokens(
+        pos_embed
+            .to_device(&device)
+            .expand([rows / views.len(), n, d]),
+        views,
+    );
+    let fill = mask_token.expand([rows, k, d]) + pos;
+    tokens * keep.clone() + fill * keep.neg().add_scalar(1.0)
 }
 
 impl Dino {
@@ -271,7 +326,12 @@ impl Dino {
     /// log P_s = log_softmax(s / τ_s)
     /// loss = mean_{i ∈ global, v ≠ i} mean_batch( −Σ_k P_t,i · log P_s,v )
     ///        + koleo_weight · Σ_{i ∈ global} KoLeo(student [cls] of view i)   (as DINOv2)
+    ///        + ibot_weight · mean_{masked tokens} ( −Σ_k P_t,patch · log P_s,patch )  (iBOT)
     /// ```
+    /// iBOT (Zhou et al. 2022, in DINOv2): the student sees each global view with the positions
+    /// `views.masked` replaced by a learned mask token; at those positions its patch outputs,
+    /// through the shared head, match the teacher's on the unmasked view (patch scores
+    /// standardized over the step's masked tokens).
     ///
     /// # Shapes
     /// - `x`: `[batch, frames, channels, height, width]`
@@ -283,23 +343,34 @@ impl Dino {
         teacher_temp: f64,
     ) -> (Tensor<1>, Tensor<2>) {
         let b = x.dims()[0];
+        let device = x.device();
         let g = views.global.len();
         let student_tokens = self.encoder.embed(x.clone());
         let teacher_tokens = self.teacher_encoder.embed(x.detach()).detach();
-        let t_out = self
-            .teacher_head
-            .forward(cls(&self.teacher_encoder, teacher_tokens, &views.global))
-            .detach();
+        let t_views = self
+            .teacher_encoder
+            .forward_tokens(view_tokens(teacher_tokens, &views.global));
+        let t_out = self.teacher_head.forward(cls(&t_views)).detach();
         let t_mean = t_out.clone().mean_dim(0);
         let t_prob = teacher_targets(t_out, self.center.val(), self.teacher_norm, teacher_temp);
-        let s_cls = cls(&self.encoder, student_tokens.clone(), &views.global);
+        let masked: Vec<Vec<usize>> = views.masked.iter().flatten().cloned().collect();
+        let mut s_tokens = view_tokens(student_tokens.clone(), &views.global);
+        if let (Some(token), false) = (&self.mask_token, masked.is_empty()) {
+            s_tokens = mask_view_tokens(
+                s_tokens,
+                self.encoder.pos_embed.clone(),
+                &views.global,
+                &masked,
+                token.val(),
+            );
+        }
+        let s_views = self.encoder.forward_tokens(s_tokens);
+        let s_cls = cls(&s_views);
         let s_global = self.head.forward(s_cls.clone());
         let mut s_all = vec![s_global];
         if !views.local.is_empty() {
-            s_all.push(
-                self.head
-                    .forward(cls(&self.encoder, student_tokens, &views.local)),
-            );
+            let local = view_tokens(student_tokens, &views.local);
+            s_all.push(self.head.forward(cls(&self.encoder.forward_tokens(local))));
         }
         let s_logp = log_softmax(Tensor::cat(s_all, 0).div_scalar(self.student_temp), 1);
         let n_views = s_logp.dims()[0] / b;
@@ -318,6 +389,25 @@ impl Dino {
             }
         }
         let mut loss = total.expect("at least two views").div_scalar(pairs as f64);
+        if self.ibot_weight > 0.0 && !masked.is_empty() {
+            let idx = index_tensor(&masked, &device);
+            let rows = |patches: Tensor<3>| {
+                let picked = gather_tokens(patches, idx.clone());
+                let [r, m, d] = picked.dims();
+                picked.reshape([r * m, d])
+            };
+            let t_patch = self.teacher_head.forward(rows(t_views.patches)).detach();
+            let t_patch =
+                teacher_targets(t_patch, self.center.val(), TeacherNorm::Batch, teacher_temp);
+            let s_patch = log_softmax(
+                self.head
+                    .forward(rows(s_views.patches))
+                    .div_scalar(self.student_temp),
+                1,
+            );
+            let ce = (t_patch * s_patch).sum_dim(1).mean().neg();
+            loss = loss + ce.mul_scalar(self.ibot_weight);
+        }
         if self.koleo_weight > 0.0 {
             for i in 0..g {
                 let term = koleo(s_cls.clone().narrow(0, i * b, b));
@@ -465,8 +555,9 @@ mod tests {
         assert!(batch < uniform - 2.0, "batch: {batch} vs ln K {uniform}");
     }
 
-    #[test]
-    fn gradients_reach_the_student_and_not_the_teacher() {
+    /// One loss and backward pass on random input, with or without iBOT masking: gradients
+    /// reach the student (and the mask token) and not the teacher.
+    fn gradients_reach_the_student(ibot: bool) {
         let device = Device::flex().autodiff();
         let (dino, x) = seeded(&device, 6, || {
             let dino = DinoConfig::new(
@@ -480,6 +571,8 @@ mod tests {
             .with_head_bottleneck(16)
             .with_num_prototypes(64)
             .with_head_batch_norm(true)
+            .with_teacher_norm(TeacherNorm::Batch)
+            .with_ibot_weight(if ibot { 1.0 } else { 0.0 })
             .init(&device);
             let x = Tensor::<5>::random(
                 [4, 1, 6, 16, 16],
@@ -492,24 +585,68 @@ mod tests {
         let views = DinoViews {
             global: vec![vec![all.clone(); 4], vec![all.clone(); 4]],
             local: vec![vec![vec![0, 1]; 4]],
+            masked: if ibot {
+                vec![vec![vec![1, 3]; 4], vec![vec![0, 2]; 4]]
+            } else {
+                Vec::new()
+            },
         };
-        let (loss, _) = dino.loss(x, &views, 0.04);
+        let (loss, _) = dino.loss(x, &views, 0.25);
         let grads = loss.backward();
-        let norm = |g: Option<Tensor<2>>| g.map(|g| g.abs().sum().into_scalar::<f32>());
-        let student = norm(dino.encoder.patch_embed.weight.val().grad(&grads));
-        assert!(
-            student.is_some_and(|g| g > 0.0),
-            "student patch embedding: {student:?}"
-        );
-        let head = norm(dino.head.mlp[0].weight.val().grad(&grads));
-        assert!(head.is_some_and(|g| g > 0.0), "student head: {head:?}");
-        assert_eq!(
-            norm(dino.teacher_encoder.patch_embed.weight.val().grad(&grads)),
-            None
-        );
-        assert_eq!(
-            norm(dino.teacher_head.mlp[0].weight.val().grad(&grads)),
-            None
-        );
+        {
+            let norm = |g: Option<Tensor<2>>| g.map(|g| g.abs().sum().into_scalar::<f32>());
+            let student = norm(dino.encoder.patch_embed.weight.val().grad(&grads));
+            assert!(
+                student.is_some_and(|g| g > 0.0),
+                "student patch embedding: {student:?}"
+            );
+            let head = norm(dino.head.mlp[0].weight.val().grad(&grads));
+            assert!(head.is_some_and(|g| g > 0.0), "student head: {head:?}");
+            assert_eq!(
+                norm(dino.teacher_encoder.patch_embed.weight.val().grad(&grads)),
+                None
+            );
+            assert_eq!(
+                norm(dino.teacher_head.mlp[0].weight.val().grad(&grads)),
+                None
+            );
+            let token = dino.mask_token.as_ref().map(|t| {
+                t.val()
+                    .grad(&grads)
+                    .map(|g| g.abs().sum().into_scalar::<f32>())
+            });
+            match token {
+                Some(g) => assert!(g.is_some_and(|g| g > 0.0), "mask token: {g:?}"),
+                None => assert!(!ibot),
+            }
+        }
+    }
+
+    #[test]
+    fn gradients_reach_the_student_and_not_the_teacher() {
+        gradients_reach_the_student(false);
+        gradients_reach_the_student(true);
+    }
+
+    #[test]
+    fn ibot_masking_replaces_exactly_the_masked_positions() {
+        let device = Device::flex();
+        let (rows_per_view, k, d) = (2, 3, 4);
+        let views = vec![vec![vec![0, 1, 2], vec![3, 4, 5]]];
+        let tokens = Tensor::<3>::ones([rows_per_view, k, d], &device);
+        let pos = Tensor::<1>::from_floats(
+            (0..6 * d)
+                .map(|i| (i / d) as f32 * 10.0)
+                .collect::<Vec<_>>()
+                .as_slice(),
+            &device,
+        )
+        .reshape([1, 6, d]);
+        let token = Tensor::<3>::full([1, 1, d], 0.5, &device);
+        let out = mask_view_tokens(tokens, pos, &views, &[vec![1], vec![0, 2]], token);
+        let v: Vec<f32> = out.into_data().try_to_vec::<f32>().unwrap();
+        // per row and position, the first feature: 1 where kept, 0.5 + 10 · grid position where masked
+        let first: Vec<f32> = v.iter().step_by(d).copied().collect();
+        assert_eq!(first, vec![1.0, 10.5, 1.0, 30.5, 1.0, 50.5]);
     }
 }

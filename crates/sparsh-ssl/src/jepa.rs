@@ -15,7 +15,8 @@ use crate::vit::{
 };
 
 /// Regression loss in latent space.
-#[derive(Config, Debug, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
 pub enum JepaLoss {
     /// Smooth L1 with β = 1 (I-JEPA).
     SmoothL1,

@@ -295,6 +295,8 @@ pub struct DinoViewConfig {
     pub num_local: usize,
     /// Local view area fraction range.
     pub local_scale: [f64; 2],
+    /// Fraction of each global view's tokens the student sees masked (iBOT; 0 = none).
+    pub mask_ratio: f64,
 }
 
 impl Default for DinoViewConfig {
@@ -304,6 +306,7 @@ impl Default for DinoViewConfig {
             global_scale: [0.48, 1.0],
             num_local: 8,
             local_scale: [0.1, 0.48],
+            mask_ratio: 0.0,
         }
     }
 }
@@ -315,6 +318,9 @@ pub struct DinoViews {
     pub global: Vec<Vec<Vec<usize>>>,
     /// Local views `[view][batch][k_local]`.
     pub local: Vec<Vec<Vec<usize>>>,
+    /// Positions within each global view that the student sees masked, `[view][batch][m]`
+    /// (iBOT; empty without masking).
+    pub masked: Vec<Vec<Vec<usize>>>,
 }
 
 impl DinoViews {
@@ -325,13 +331,15 @@ impl DinoViews {
         Self {
             global: cut(&self.global),
             local: cut(&self.local),
+            masked: cut(&self.masked),
         }
     }
 }
 
 /// DINO token-crop views: each view keeps a rectangle of the patch grid whose area fraction is
 /// drawn in its scale range and aspect ratio in 3/4–4/3 (one size per kind per batch, positions
-/// per view and sample).
+/// per view and sample); with `mask_ratio > 0`, that fraction of each global view's positions
+/// (at least one, never all) drawn at random per view and sample for iBOT.
 pub fn dino_views(
     rng: &mut Rng,
     batch: usize,
@@ -355,9 +363,32 @@ pub fn dino_views(
             })
             .collect()
     };
-    let global = kind(cfg.num_global, cfg.global_scale, rng);
+    let global: Vec<Vec<Vec<usize>>> = kind(cfg.num_global, cfg.global_scale, rng);
     let local = kind(cfg.num_local, cfg.local_scale, rng);
-    DinoViews { global, local }
+    let masked = if cfg.mask_ratio > 0.0 {
+        let k = global.first().and_then(|v| v.first()).map_or(0, Vec::len);
+        let m = ((cfg.mask_ratio * k as f64).round() as usize).clamp(1, k.max(2) - 1);
+        global
+            .iter()
+            .map(|view| {
+                view.iter()
+                    .map(|_| {
+                        let mut picks = rng.permutation(k);
+                        picks.truncate(m);
+                        picks.sort_unstable();
+                        picks
+                    })
+                    .collect()
+            })
+            .collect()
+    } else {
+        Vec::new()
+    };
+    DinoViews {
+        global,
+        local,
+        masked,
+    }
 }
 
 #[cfg(test)]
@@ -472,6 +503,33 @@ mod tests {
                     }
                 }
             }
+            assert!(v.masked.is_empty());
         }
+    }
+
+    #[test]
+    fn ibot_masks_take_the_ratio_of_each_global_view_and_leave_the_rest() {
+        let (rows, cols) = (12, 9);
+        let cfg = DinoViewConfig {
+            mask_ratio: 0.3,
+            ..DinoViewConfig::default()
+        };
+        let unmasked = dino_views(&mut Rng::new(4), 5, rows, cols, &DinoViewConfig::default());
+        let v = dino_views(&mut Rng::new(4), 5, rows, cols, &cfg);
+        // the masks are drawn after the views, which stay as they were
+        assert_eq!((&v.global, &v.local), (&unmasked.global, &unmasked.local));
+        assert_eq!(v.masked.len(), 2);
+        let k = v.global[0][0].len();
+        let m = (0.3 * k as f64).round() as usize;
+        let mut distinct = HashSet::new();
+        for view in &v.masked {
+            assert_eq!(view.len(), 5);
+            for s in view {
+                assert_eq!(s.len(), m);
+                assert!(s.windows(2).all(|w| w[0] < w[1]) && s[m - 1] < k);
+                distinct.insert(s.clone());
+            }
+        }
+        assert!(distinct.len() > 5, "masks repeat across samples and views");
     }
 }

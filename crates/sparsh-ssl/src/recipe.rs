@@ -134,6 +134,9 @@ pub struct DinoSection {
     /// Teacher targets: `"center"` (official running centre) or `"batch"` (each prototype's
     /// score standardized over the step's batch, see [`TeacherNorm`]).
     pub teacher_norm: TeacherNorm,
+    /// Weight of DINOv2's iBOT masked-patch term (0 = off, official DINO); needs
+    /// `views.mask_ratio > 0` and `teacher_norm = "batch"`.
+    pub ibot_weight: f64,
     /// Views.
     pub views: DinoViewConfig,
 }
@@ -152,6 +155,7 @@ impl Default for DinoSection {
             ema: [0.998, 0.998],
             koleo_weight: 0.0,
             teacher_norm: TeacherNorm::Center,
+            ibot_weight: 0.0,
             views: DinoViewConfig::default(),
         }
     }
@@ -178,6 +182,9 @@ pub struct JepaSection {
     /// Regression targets: `"layer"` (official) or `"layer_batch"` (then standardized per
     /// token and feature over the batch, see [`TargetNorm`]).
     pub target_norm: TargetNorm,
+    /// Latent regression loss: `"l1"` or `"smooth_l1"`; unset, the objective's own (V-JEPA
+    /// L1, I-JEPA smooth L1).
+    pub loss: Option<JepaLoss>,
 }
 
 impl Default for JepaSection {
@@ -191,6 +198,7 @@ impl Default for JepaSection {
             tube_masks: default_tube_masks(),
             tubelet_size: 2,
             target_norm: TargetNorm::Layer,
+            loss: None,
         }
     }
 }
@@ -458,6 +466,19 @@ impl Recipe {
                         "dino.teacher_norm = \"batch\" needs ≥ 2 samples per micro-batch".into(),
                     );
                 }
+                let r = self.dino.views.mask_ratio;
+                if !(0.0..1.0).contains(&r) {
+                    return bad(format!("dino.views.mask_ratio must be in [0, 1), got {r}"));
+                }
+                let w = self.dino.ibot_weight;
+                if !(w.is_finite() && w >= 0.0)
+                    || (w > 0.0 && (r == 0.0 || self.dino.teacher_norm != TeacherNorm::Batch))
+                {
+                    return bad(format!(
+                        "dino.ibot_weight must be ≥ 0, and above 0 needs dino.views.mask_ratio > 0 \
+                         and dino.teacher_norm = \"batch\", got {w}"
+                    ));
+                }
             }
             ObjectiveKind::Ijepa | ObjectiveKind::Vjepa => {
                 let j = &self.jepa;
@@ -506,17 +527,18 @@ impl Recipe {
             .with_center_momentum(d.center_momentum)
             .with_head_batch_norm(d.head_batch_norm)
             .with_koleo_weight(d.koleo_weight)
-            .with_teacher_norm(d.teacher_norm))
+            .with_teacher_norm(d.teacher_norm)
+            .with_ibot_weight(d.ibot_weight))
     }
 
     /// I-JEPA / V-JEPA configuration.
     pub fn jepa_config(&self) -> Result<JepaConfig, Error> {
         let j = &self.jepa;
-        let loss = if self.objective == ObjectiveKind::Vjepa {
+        let loss = j.loss.unwrap_or(if self.objective == ObjectiveKind::Vjepa {
             JepaLoss::L1
         } else {
             JepaLoss::SmoothL1
-        };
+        });
         Ok(JepaConfig::new(
             self.encoder_config()?,
             j.predictor_dim,
@@ -566,6 +588,20 @@ mod tests {
         let dino = BASE
             .replace("mae", "dino")
             .replace("patch_size = 8\n", "patch_size = 8\nnum_registers = 1\n");
+        for ibot in [
+            "ibot_weight = 1.0\nteacher_norm = \"batch\"\n",
+            "ibot_weight = 1.0\n[dino.views]\nmask_ratio = 0.3\n",
+            "teacher_norm = \"batch\"\n[dino.views]\nmask_ratio = 1.0\n",
+        ] {
+            let e = Recipe::parse(&format!("{dino}[dino]\n{ibot}")).unwrap_err();
+            assert!(
+                (e.contains("dino.ibot_weight") || e.contains("dino.views.mask_ratio"))
+                    && !e.contains('\n'),
+                "{e}"
+            );
+        }
+        let ibot = "ibot_weight = 1.0\nteacher_norm = \"batch\"\n[dino.views]\nmask_ratio = 0.3\n";
+        assert!(Recipe::parse(&format!("{dino}[dino]\n{ibot}")).is_ok());
         let e = Recipe::parse(&format!("{dino}[dino]\nkoleo_weight = -0.1\n")).unwrap_err();
         assert!(e.contains("dino.koleo_weight") && !e.contains('\n'), "{e}");
         for parts in [0, 5] {
@@ -580,6 +616,21 @@ mod tests {
         }
         let e = Recipe::parse(&BASE.replace("mae", "simclr")).unwrap_err();
         assert!(e.contains("simclr") || e.contains("variant"), "{e}");
+    }
+
+    #[test]
+    fn jepa_loss_is_the_objective_s_own_unless_set() {
+        let loss = |objective: &str, extra: &str| {
+            Recipe::parse(&format!("{}{extra}", BASE.replace("mae", objective)))
+                .and_then(|r| r.jepa_config().map_err(|e| e.to_string()))
+                .map(|c| c.loss)
+        };
+        assert_eq!(loss("vjepa", ""), Ok(JepaLoss::L1));
+        assert_eq!(loss("ijepa", ""), Ok(JepaLoss::SmoothL1));
+        let set = "[jepa]\nloss = \"smooth_l1\"\n";
+        assert_eq!(loss("vjepa", set), Ok(JepaLoss::SmoothL1));
+        let e = loss("vjepa", "[jepa]\nloss = \"l2\"\n").unwrap_err();
+        assert!(e.contains("l2") && !e.contains('\n'), "{e}");
     }
 
     #[test]

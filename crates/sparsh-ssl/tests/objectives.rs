@@ -92,6 +92,16 @@ fn dino_step_with_batch_standardized_teacher_lowers_loss() {
 }
 
 #[test]
+fn dino_step_with_ibot_masked_patches_lowers_loss() {
+    one_step_lowers_loss(recipe(
+        "dino",
+        "num_registers = 1\n[dino]\nhead_hidden = 64\nhead_bottleneck = 16\nnum_prototypes = 128\n\
+         ema = [1.0, 1.0]\nteacher_norm = \"batch\"\nteacher_temp = [0.25, 0.25]\nibot_weight = 1.0\n\
+         [dino.views]\nnum_local = 4\nmask_ratio = 0.4",
+    ));
+}
+
+#[test]
 fn ijepa_step_lowers_loss() {
     one_step_lowers_loss(recipe(
         "ijepa",
@@ -249,4 +259,39 @@ fn dino_micro_batches_give_the_whole_batch_gradient_without_batch_statistics() {
         "num_registers = 1\n[dino]\nhead_hidden = 64\nhead_bottleneck = 16\n\
          num_prototypes = 128\nhead_batch_norm = false\nkoleo_weight = 0.0\n[dino.views]\nnum_local = 2",
     ));
+}
+
+#[test]
+fn ema_copies_start_as_the_trained_weights() {
+    let device = Device::flex().autodiff();
+    let weights = |m: &dyn Fn(&mut Weights)| {
+        let mut w = Weights(Vec::new());
+        m(&mut w);
+        w.0
+    };
+    let jepa = recipe(
+        "ijepa",
+        "[jepa]\npredictor_dim = 32\npredictor_depth = 1\npredictor_heads = 4",
+    );
+    let Trainee::Jepa(j) = Trainee::init(&jepa, &device).unwrap() else {
+        panic!("I-JEPA trainee")
+    };
+    let encoder = weights(&|w| j.encoder.visit(w));
+    assert!(!encoder.is_empty());
+    assert_eq!(encoder, weights(&|w| j.target_encoder.visit(w)));
+    let dino = recipe(
+        "dino",
+        "num_registers = 1\n[dino]\nhead_hidden = 64\nhead_bottleneck = 16\nnum_prototypes = 128",
+    );
+    let Trainee::Dino(d) = Trainee::init(&dino, &device).unwrap() else {
+        panic!("DINO trainee")
+    };
+    assert_eq!(
+        weights(&|w| d.encoder.visit(w)),
+        weights(&|w| d.teacher_encoder.visit(w))
+    );
+    assert_eq!(
+        weights(&|w| d.head.visit(w)),
+        weights(&|w| d.teacher_head.visit(w))
+    );
 }
