@@ -472,11 +472,13 @@ impl Recipe {
                 }
                 let w = self.dino.ibot_weight;
                 if !(w.is_finite() && w >= 0.0)
-                    || (w > 0.0 && (r == 0.0 || self.dino.teacher_norm != TeacherNorm::Batch))
+                    || ((w > 0.0) != (r > 0.0))
+                    || (w > 0.0 && self.dino.teacher_norm != TeacherNorm::Batch)
                 {
                     return bad(format!(
-                        "dino.ibot_weight must be ≥ 0, and above 0 needs dino.views.mask_ratio > 0 \
-                         and dino.teacher_norm = \"batch\", got {w}"
+                        "dino.ibot_weight must be ≥ 0, and above 0 exactly when \
+                         dino.views.mask_ratio is (the masks only serve iBOT), with \
+                         dino.teacher_norm = \"batch\"; got {w} and {r}"
                     ));
                 }
             }
@@ -592,6 +594,7 @@ mod tests {
             "ibot_weight = 1.0\nteacher_norm = \"batch\"\n",
             "ibot_weight = 1.0\n[dino.views]\nmask_ratio = 0.3\n",
             "teacher_norm = \"batch\"\n[dino.views]\nmask_ratio = 1.0\n",
+            "teacher_norm = \"batch\"\n[dino.views]\nmask_ratio = 0.3\n",
         ] {
             let e = Recipe::parse(&format!("{dino}[dino]\n{ibot}")).unwrap_err();
             assert!(
