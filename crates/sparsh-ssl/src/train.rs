@@ -114,15 +114,15 @@ impl Trainee {
                 (None, None, Some(recipe.jepa_config()?))
             }
         };
-        let seed = recipe.seed;
-        Ok(if let Some(c) = mae {
-            Trainee::Mae(seeded_module(device, seed, || c.init(device)))
-        } else if let Some(c) = dino {
-            Trainee::Dino(seeded_module(device, seed, || c.init(device)))
-        } else {
-            let c = jepa.expect("one objective");
-            Trainee::Jepa(seeded_module(device, seed, || c.init(device)))
-        })
+        Ok(seeded_module(device, recipe.seed, || {
+            if let Some(c) = mae {
+                Trainee::Mae(c.init(device))
+            } else if let Some(c) = dino {
+                Trainee::Dino(c.init(device))
+            } else {
+                Trainee::Jepa(jepa.expect("one objective").init(device))
+            }
+        }))
     }
 
     /// The encoder being pretrained.
