@@ -194,6 +194,10 @@ enum Command {
         /// or its directory); repeat to pool the sequences of several.
         #[arg(long, required = true)]
         data: Vec<PathBuf>,
+        /// Labelled dataset of the online force probe (default: the --data sets); repeat for
+        /// several. Probing a fixed labelled set lets runs on different data be compared.
+        #[arg(long)]
+        probe_data: Vec<PathBuf>,
         /// Run directory (log.csv, checkpoint/, encoder.safetensors).
         #[arg(long)]
         out: PathBuf,
@@ -220,6 +224,10 @@ enum Command {
         /// Probe seeds 0..N.
         #[arg(long, default_value_t = 3)]
         seeds: u64,
+        /// Label budget: fit the probes on this share of the training samples (default: the
+        /// recipe's `[log] probe_label_fraction`).
+        #[arg(long)]
+        label_fraction: Option<f64>,
     },
 }
 
@@ -329,16 +337,18 @@ fn run(cli: Cli) -> Result<()> {
         Command::Pretrain {
             config,
             data,
+            probe_data,
             out,
             resume,
             max_steps,
-        } => pretrain::pretrain(&config, data, out, resume, max_steps),
+        } => pretrain::pretrain(&config, data, probe_data, out, resume, max_steps),
         Command::Probe {
             config,
             data,
             encoder,
             seeds,
-        } => pretrain::probe(&config, &data, encoder.as_deref(), seeds),
+            label_fraction,
+        } => pretrain::probe(&config, &data, encoder.as_deref(), seeds, label_fraction),
     }
 }
 

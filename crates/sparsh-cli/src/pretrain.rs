@@ -11,6 +11,7 @@ use sparsh_ssl::train::{RunOptions, probe_encoders, run};
 pub fn pretrain(
     config: &Path,
     data: Vec<PathBuf>,
+    probe_data: Vec<PathBuf>,
     out: PathBuf,
     resume: bool,
     max_steps: Option<usize>,
@@ -25,6 +26,7 @@ pub fn pretrain(
     );
     let opts = RunOptions {
         data,
+        probe_data,
         out: out.clone(),
         resume,
         max_steps,
@@ -62,12 +64,26 @@ pub fn pretrain(
 
 /// `sparsh probe`: the recipe's force probes (attentive and ridge, RMSE in mN on held-out
 /// sequences) on its random encoder and on `encoder`, one row per probe seed and their mean.
-pub fn probe(config: &Path, data: &[PathBuf], encoder: Option<&Path>, seeds: u64) -> Result<()> {
+/// `label_fraction` replaces the recipe's `[log] probe_label_fraction`.
+pub fn probe(
+    config: &Path,
+    data: &[PathBuf],
+    encoder: Option<&Path>,
+    seeds: u64,
+    label_fraction: Option<f64>,
+) -> Result<()> {
     anyhow::ensure!(
         (1..=100).contains(&seeds),
         "--seeds must be 1 to 100, got {seeds}"
     );
-    let recipe = Recipe::load(config)?;
+    let mut recipe = Recipe::load(config)?;
+    if let Some(f) = label_fraction {
+        anyhow::ensure!(
+            f > 0.0 && f <= 1.0,
+            "--label-fraction must be in (0, 1], got {f}"
+        );
+        recipe.log.probe_label_fraction = f;
+    }
     let seeds: Vec<u64> = (0..seeds).collect();
     let rows = probe_encoders(&recipe, data, encoder, &seeds)?;
     println!("| probe seed | random init: attentive | linear | pretrained: attentive | linear |");

@@ -40,9 +40,10 @@ pub struct ProbeScore {
 
 impl ProbeSet {
     /// Up to `max` evenly spaced labelled samples; every fifth sequence is held out (every fifth
-    /// sample when there are fewer than five labelled sequences). `None` when the data carry no
-    /// force labels or too few samples.
-    pub fn new(sampler: &Sampler, max: usize, chunk: usize) -> Option<Self> {
+    /// sample when there are fewer than five labelled sequences), and of the others an evenly
+    /// spaced `label_fraction` is kept for fitting (the label budget). `None` when the data
+    /// carry no force labels or too few samples.
+    pub fn new(sampler: &Sampler, max: usize, chunk: usize, label_fraction: f64) -> Option<Self> {
         let labelled: Vec<usize> = (0..sampler.samples.len())
             .filter(|&i| {
                 sampler.data().sequences[sampler.samples[i].0]
@@ -68,6 +69,21 @@ impl ProbeSet {
                 }
             })
             .collect();
+        // the budget: training rows whose running share crosses a multiple of `label_fraction`
+        let mut train_seen = 0usize;
+        let (picks, test): (Vec<usize>, Vec<bool>) = picks
+            .into_iter()
+            .zip(test)
+            .filter(|&(_, t)| {
+                if t {
+                    return true;
+                }
+                let keep = ((train_seen + 1) as f64 * label_fraction).floor()
+                    > (train_seen as f64 * label_fraction).floor();
+                train_seen += 1;
+                keep
+            })
+            .unzip();
         if test.iter().all(|&t| t) || !test.iter().any(|&t| t) {
             return None;
         }
@@ -85,6 +101,12 @@ impl ProbeSet {
             test,
             forces,
         })
+    }
+
+    /// Samples the probes are fitted on and samples they are scored on.
+    pub fn sizes(&self) -> (usize, usize) {
+        let held_out = self.test.iter().filter(|&&t| t).count();
+        (self.test.len() - held_out, held_out)
     }
 
     /// Fits and scores the probes on `encoder` (frozen; no gradients reach it): the ridge
@@ -242,8 +264,9 @@ impl AttentiveProbe {
 /// Trains an [`AttentiveProbe`] on the rows of `tokens` (`[samples, tokens, dim]`, row-major)
 /// not marked `test` and returns its RMSE (mN, forces in N) over the test rows and three axes.
 /// Tokens are standardized per (token, feature) and forces per axis with the training rows'
-/// statistics; AdamW (lr 1e-3, weight decay 0.01), batches of 32, MSE, `epochs` passes in an
-/// order drawn from `seed`.
+/// statistics; AdamW (weight decay 0.01) with the learning rate falling from 1e-3 to 0 on a
+/// half cosine over the run (so the probe ends at a settled minimum rather than a noisy
+/// iterate), batches of 32, MSE, `epochs` passes in an order drawn from `seed`.
 pub fn attentive_score(
     tokens: &[f32],
     dims: [usize; 3],
@@ -276,6 +299,8 @@ pub fn attentive_score(
         AttentiveProbeConfig::new(d, heads).init(&device)
     });
     let mut optim = AdamWConfig::new().with_weight_decay(0.01).init();
+    let total_steps = (epochs * train.len().div_ceil(32)).max(1);
+    let mut step = 0;
     for epoch in 0..epochs {
         let order = Rng::for_step(seed, epoch as u64, 7).permutation(train.len());
         for chunk in order.chunks(32) {
@@ -296,7 +321,10 @@ pub fn attentive_score(
                 Tensor::<1>::from_floats(target.as_slice(), &device).reshape([rows.len(), 3]);
             let loss = (probe.forward(x) - target).powi_scalar(2).mean();
             let grads = GradientsParams::from_grads(loss.backward(), &probe);
-            probe = optim.step(1e-3, probe, grads);
+            let lr =
+                0.5e-3 * (1.0 + (std::f64::consts::PI * step as f64 / total_steps as f64).cos());
+            probe = optim.step(lr, probe, grads);
+            step += 1;
         }
     }
     let probe = probe.valid();

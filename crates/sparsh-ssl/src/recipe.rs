@@ -290,6 +290,9 @@ pub struct LogSection {
     pub probe_max_samples: usize,
     /// Training epochs of the attentive probe (0: the linear read-out only).
     pub probe_epochs: usize,
+    /// Share of the probe's training samples it is fitted on (evenly spaced; the held-out
+    /// sequences are all scored): TacBench's label budget, in (0, 1].
+    pub probe_label_fraction: f64,
 }
 
 impl Default for LogSection {
@@ -299,6 +302,7 @@ impl Default for LogSection {
             probe_every: 250,
             probe_max_samples: 512,
             probe_epochs: 40,
+            probe_label_fraction: 1.0,
         }
     }
 }
@@ -427,6 +431,12 @@ impl Recipe {
         let per_part = self.optim.batch_size / parts;
         if self.log.checkpoint_every == 0 {
             return bad("log.checkpoint_every must be positive".into());
+        }
+        let f = self.log.probe_label_fraction;
+        if !(f > 0.0 && f <= 1.0) {
+            return bad(format!(
+                "log.probe_label_fraction must be in (0, 1], got {f}"
+            ));
         }
         match self.objective {
             ObjectiveKind::Mae => {

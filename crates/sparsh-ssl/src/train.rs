@@ -382,6 +382,26 @@ where
     (avg.out, value / n, aux.map(|s| s.div_scalar(n)))
 }
 
+/// The force-probe set of `recipe` drawn from the labelled datasets `data`; an error naming the
+/// first dataset when they carry too few force labels.
+fn probe_set(recipe: &Recipe, data: &[PathBuf]) -> Result<ProbeSet, Error> {
+    let sampler = Sampler::new(Arc::new(load_data(recipe, data)?), recipe.stacking())?;
+    let first = data.first().map_or(Path::new("."), PathBuf::as_path);
+    ProbeSet::new(
+        &sampler,
+        recipe.log.probe_max_samples,
+        recipe.optim.batch_size,
+        recipe.log.probe_label_fraction,
+    )
+    .ok_or_else(|| {
+        Error::file(
+            first,
+            "no force probe: it needs force labels on at least 10 frames of several sequences \
+             (and [log] probe_max_samples ≥ 10)",
+        )
+    })
+}
+
 /// Scores the force probes of `recipe` on `data` for the recipe's randomly initialised encoder
 /// and, when given, the encoder weights in `encoder` (safetensors, official key names), once per
 /// probe seed in `seeds`: `(random init, loaded)` per seed. Errors when the data carry no force
@@ -393,20 +413,7 @@ pub fn probe_encoders(
     seeds: &[u64],
 ) -> Result<Vec<(ProbeScore, Option<ProbeScore>)>, Error> {
     recipe.validate()?;
-    let sampler = Sampler::new(Arc::new(load_data(recipe, data)?), recipe.stacking())?;
-    let first = data.first().map_or(Path::new("."), PathBuf::as_path);
-    let set = ProbeSet::new(
-        &sampler,
-        recipe.log.probe_max_samples,
-        recipe.optim.batch_size,
-    )
-    .ok_or_else(|| {
-        Error::file(
-            first,
-            "no force probe: it needs force labels on at least 10 frames of several sequences \
-             (and [log] probe_max_samples ≥ 10)",
-        )
-    })?;
+    let set = probe_set(recipe, data)?;
     // initialised as a run initialises it, on the autodiff device
     let device = Device::flex().autodiff();
     let random = Trainee::init(recipe, &device)?.encoder().clone();
@@ -439,6 +446,8 @@ pub fn optimizer(recipe: &Recipe) -> burn::optim::ModuleOptimizer {
 pub struct RunOptions {
     /// Datasets: directories (generated or Sparsh pickles) or Taxim packs.
     pub data: Vec<PathBuf>,
+    /// Labelled datasets of the online force probe; empty: the probe reads `data`.
+    pub probe_data: Vec<PathBuf>,
     /// Run directory.
     pub out: PathBuf,
     /// Continue the run in `out` from its checkpoint.
@@ -569,14 +578,17 @@ pub fn run(
     std::fs::create_dir_all(&opts.out).map_err(|e| Error::file(&opts.out, e))?;
     let data = Arc::new(load_data(recipe, &opts.data)?);
     let sampler = Sampler::new(data, recipe.stacking())?;
-    let probe_set = if recipe.log.probe_every > 0 {
+    let probe_set = if recipe.log.probe_every == 0 {
+        None
+    } else if opts.probe_data.is_empty() {
         ProbeSet::new(
             &sampler,
             recipe.log.probe_max_samples,
             recipe.optim.batch_size,
+            recipe.log.probe_label_fraction,
         )
     } else {
-        None
+        Some(probe_set(recipe, &opts.probe_data)?)
     };
 
     let mut model = Trainee::init(recipe, &device)?;

@@ -4,9 +4,10 @@
 use std::path::Path;
 
 use image::{Rgb, RgbImage};
-use sparsh_ssl::data::Dataset;
+use sparsh_ssl::data::{Dataset, Sampler};
+use sparsh_ssl::probe::ProbeSet;
 use sparsh_ssl::recipe::Recipe;
-use sparsh_ssl::train::{RunOptions, probe_encoders, run, seeded_module};
+use sparsh_ssl::train::{RunOptions, load_data, probe_encoders, run, seeded_module};
 use sparsh_ssl::weights::{load_encoder, save_encoder};
 
 /// burn's random generator is process-wide and parameters draw from it when first used, so
@@ -87,6 +88,7 @@ fn resume_continues_the_same_loss_curve() {
     let r = recipe(6);
     let opts = |out: &str, resume, max_steps| RunOptions {
         data: vec![data.clone()],
+        probe_data: vec![],
         out: tmp.path().join(out),
         resume,
         max_steps,
@@ -182,8 +184,37 @@ fn pickle_layout_loads_as_sequences() {
     );
 }
 
+/// A label budget fits the probes on that share of the training samples and scores them on
+/// every held-out sample; a budget outside (0, 1] is refused by the recipe check.
+#[test]
+fn label_budget_thins_the_fitted_samples_only() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("data");
+    write_generated(&data, 10, 12);
+    let r = recipe(4);
+    let sampler = Sampler::new(
+        std::sync::Arc::new(load_data(&r, std::slice::from_ref(&data)).unwrap()),
+        r.stacking(),
+    )
+    .unwrap();
+    // 10 sequences of 12 frames, I_t ⊕ I_{t−5}: 7 samples each; sequences 4 and 9 held out
+    let (fitted, held_out) = ProbeSet::new(&sampler, 1000, 4, 1.0).unwrap().sizes();
+    assert_eq!((fitted, held_out), (56, 14));
+    let (quarter, held_out_q) = ProbeSet::new(&sampler, 1000, 4, 0.25).unwrap().sizes();
+    assert_eq!((quarter, held_out_q), (14, 14));
+    let (tenth, _) = ProbeSet::new(&sampler, 1000, 4, 0.1).unwrap().sizes();
+    assert_eq!(tenth, 5);
+    for f in [0.0, -0.5, 1.5, f64::NAN] {
+        let mut bad = r.clone();
+        bad.log.probe_label_fraction = f;
+        let err = bad.validate().unwrap_err().to_string();
+        assert!(err.contains("probe_label_fraction"), "{err}");
+    }
+}
+
 /// The standalone probe (`sparsh probe`) of a finished run's encoder, with the recipe's seed,
-/// reproduces the probe rows the run logged at step 0 (random init) and at its end.
+/// reproduces the probe rows the run logged at step 0 (random init) and at its end, also when
+/// the run pretrains on unlabelled data and probes a separate labelled set.
 #[test]
 fn standalone_probe_reproduces_the_logged_probe() {
     let _serial = serial();
@@ -194,6 +225,7 @@ fn standalone_probe_reproduces_the_logged_probe() {
     let out = tmp.path().join("run");
     let opts = RunOptions {
         data: vec![data.clone()],
+        probe_data: vec![],
         out: out.clone(),
         resume: false,
         max_steps: None,
@@ -231,11 +263,50 @@ fn standalone_probe_reproduces_the_logged_probe() {
     )
     .unwrap();
     std::fs::write(unlabelled.join("dataset_0.pkl"), pickle).unwrap();
-    let err = probe_encoders(&r, &[unlabelled], None, &[0])
+    let err = probe_encoders(&r, std::slice::from_ref(&unlabelled), None, &[0])
         .unwrap_err()
         .to_string();
     assert!(
         err.contains("unlabelled") && err.contains("force labels"),
+        "{err}"
+    );
+
+    // pretraining on the unlabelled pickles with the probe on a separate labelled set: the run
+    // logs the probe of that set, as the standalone probe scores it
+    let separate = RunOptions {
+        data: vec![unlabelled.clone()],
+        probe_data: vec![data.clone()],
+        out: tmp.path().join("separate"),
+        resume: false,
+        max_steps: None,
+    };
+    let summary = run(&r, &separate, &mut |_| {}).unwrap();
+    let rows = probe_encoders(
+        &r,
+        std::slice::from_ref(&data),
+        Some(&separate.out.join("encoder.safetensors")),
+        &[r.seed],
+    )
+    .unwrap();
+    assert_eq!(rows[0].0.rmse_mn, summary.probe_initial.unwrap().rmse_mn);
+    assert_eq!(
+        rows[0].1.unwrap().rmse_mn,
+        summary.probe_final.unwrap().rmse_mn
+    );
+    // and an unlabelled probe set is refused before training, naming it
+    let err = run(
+        &r,
+        &RunOptions {
+            probe_data: vec![unlabelled],
+            out: tmp.path().join("refused"),
+            ..separate
+        },
+        &mut |_| {},
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(
+        err.contains("unlabelled") && err.contains("force labels") && !err.contains('\n'),
         "{err}"
     );
 }
@@ -317,6 +388,7 @@ fn bad_inputs_are_one_line_errors() {
     write_generated(&data, 1, 8);
     let opts = RunOptions {
         data: vec![data],
+        probe_data: vec![],
         out: tmp.path().join("run"),
         resume: false,
         max_steps: Some(2),
