@@ -776,3 +776,20 @@ fn calibrated_model_with_markers_and_noise_is_deterministic() {
     assert!((x - (-8.4 + 7.9) / 0.2).abs() < 1e-9, "{x}");
     assert!((y - (-6.0 + 5.9) / 0.2).abs() < 1e-9, "{y}");
 }
+
+#[test]
+fn probe_refuses_a_label_budget_outside_zero_to_one() {
+    let tmp = tempfile::tempdir().unwrap();
+    let recipe = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../assets/ssl/mae_tiny_cpu.toml");
+    for bad in ["0", "1.5", "-0.1"] {
+        let out = sparsh(&[
+            "probe",
+            "--config",
+            recipe.to_str().unwrap(),
+            "--data",
+            tmp.path().to_str().unwrap(),
+            &format!("--label-fraction={bad}"),
+        ]);
+        assert_user_error(&out, "--label-fraction");
+    }
+}

@@ -228,6 +228,10 @@ enum Command {
         /// recipe's `[log] probe_label_fraction`).
         #[arg(long)]
         label_fraction: Option<f64>,
+        /// Also fit the attentive probe on the raw input patches (no encoder): what the
+        /// encoders' tokens are up against.
+        #[arg(long)]
+        patches: bool,
     },
 }
 
@@ -348,7 +352,15 @@ fn run(cli: Cli) -> Result<()> {
             encoder,
             seeds,
             label_fraction,
-        } => pretrain::probe(&config, &data, encoder.as_deref(), seeds, label_fraction),
+            patches,
+        } => pretrain::probe(
+            &config,
+            &data,
+            encoder.as_deref(),
+            seeds,
+            label_fraction,
+            patches,
+        ),
     }
 }
 

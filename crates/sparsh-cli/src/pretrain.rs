@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 use anyhow::Result;
 use indicatif::{ProgressBar, ProgressStyle};
 use sparsh_ssl::recipe::Recipe;
-use sparsh_ssl::train::{RunOptions, probe_encoders, run};
+use sparsh_ssl::train::{RunOptions, probe_encoders, probe_patches, run};
 
 /// Runs (or resumes) the recipe `config` on `data`, writing into `out`.
 pub fn pretrain(
@@ -64,13 +64,15 @@ pub fn pretrain(
 
 /// `sparsh probe`: the recipe's force probes (attentive and ridge, RMSE in mN on held-out
 /// sequences) on its random encoder and on `encoder`, one row per probe seed and their mean.
-/// `label_fraction` replaces the recipe's `[log] probe_label_fraction`.
+/// `label_fraction` replaces the recipe's `[log] probe_label_fraction`; `patches` adds the
+/// attentive probe on the raw input patches.
 pub fn probe(
     config: &Path,
     data: &[PathBuf],
     encoder: Option<&Path>,
     seeds: u64,
     label_fraction: Option<f64>,
+    patches: bool,
 ) -> Result<()> {
     anyhow::ensure!(
         (1..=100).contains(&seeds),
@@ -121,5 +123,15 @@ pub fn probe(
         "force RMSE in mN; predicting the training mean scores {:.1} mN",
         rows[0].0.baseline_mn
     );
+    if patches {
+        let scores = probe_patches(&recipe, data, &seeds)?;
+        let list: Vec<String> = scores.iter().map(|v| format!("{v:.1}")).collect();
+        println!(
+            "attentive probe on the raw input patches (no encoder), seeds 0..{}: {} mN, mean {:.1}",
+            seeds.len() - 1,
+            list.join(" / "),
+            scores.iter().sum::<f64>() / scores.len() as f64
+        );
+    }
     Ok(())
 }

@@ -109,6 +109,49 @@ impl ProbeSet {
         (self.test.len() - held_out, held_out)
     }
 
+    /// The attentive probe (as in [`ProbeSet::score`]) on the raw input patches instead of an
+    /// encoder's tokens: the `patch`×`patch` squares of every frame and channel of a sample,
+    /// flattened into one token each. What any encoder's tokens are up against: a randomly
+    /// initialised ViT maps these patches almost linearly, and the probe reads its tokens alike.
+    pub fn score_patches(&self, patch: usize, attentive_epochs: usize, seed: u64) -> f64 {
+        let (tokens, dims) = self.patch_tokens(patch);
+        attentive_score(
+            &tokens,
+            dims,
+            &self.forces,
+            &self.test,
+            attentive_epochs,
+            seed,
+        )
+    }
+
+    /// Raw patches as tokens, `[samples, (height/patch)·(width/patch), frames·channels·patch²]`
+    /// row-major, the patches in row-major grid order, each patch's values in (frame,
+    /// channel, row, column) order.
+    fn patch_tokens(&self, patch: usize) -> (Vec<f32>, [usize; 3]) {
+        let [_, f, c, h, w] = self.batches[0].shape;
+        let (gh, gw) = (h / patch, w / patch);
+        let d = f * c * patch * patch;
+        let mut tokens = Vec::new();
+        let mut n = 0;
+        for b in &self.batches {
+            for sample in b.values.chunks(f * c * h * w) {
+                for gy in 0..gh {
+                    for gx in 0..gw {
+                        for plane in sample.chunks(h * w) {
+                            for y in gy * patch..(gy + 1) * patch {
+                                let row = &plane[y * w + gx * patch..y * w + (gx + 1) * patch];
+                                tokens.extend_from_slice(row);
+                            }
+                        }
+                    }
+                }
+                n += 1;
+            }
+        }
+        (tokens, [n, gh * gw, d])
+    }
+
     /// Fits and scores the probes on `encoder` (frozen; no gradients reach it): the ridge
     /// read-out always, the attentive probe trained for `attentive_epochs` epochs (seeded by
     /// `seed`) when that is above 0.
@@ -547,6 +590,39 @@ mod tests {
         assert!(rmse > 0.9 * baseline, "{rmse} vs mean {baseline}");
         // seeded: the same score again
         assert_eq!(rmse, attentive_score(&noise, [n, t, d], &y, &test, 40, 1));
+    }
+
+    #[test]
+    fn patch_tokens_are_the_row_major_patches() {
+        // two samples of one frame, two channels, 4×4 pixels; value = 100·sample + 16·channel + pixel
+        let values: Vec<f32> = (0..2)
+            .flat_map(|s| {
+                (0..2).flat_map(move |c| (0..16).map(move |p| (100 * s + 16 * c + p) as f32))
+            })
+            .collect();
+        let set = ProbeSet {
+            batches: vec![HostBatch {
+                step: 0,
+                values,
+                shape: [2, 1, 2, 4, 4],
+                forces: None,
+            }],
+            test: vec![false, true],
+            forces: vec![[0.0; 3]; 2],
+        };
+        let (tokens, dims) = set.patch_tokens(2);
+        assert_eq!(dims, [2, 4, 8]);
+        // sample 0, token 1 (grid row 0, column 1): channel 0 pixels 2, 3, 6, 7, then channel 1
+        assert_eq!(
+            &tokens[8..16],
+            &[2.0, 3.0, 6.0, 7.0, 18.0, 19.0, 22.0, 23.0]
+        );
+        // sample 1, token 2 (grid row 1, column 0)
+        let t = (4 + 2) * 8;
+        assert_eq!(
+            &tokens[t..t + 8],
+            &[108.0, 109.0, 112.0, 113.0, 124.0, 125.0, 128.0, 129.0]
+        );
     }
 
     #[test]

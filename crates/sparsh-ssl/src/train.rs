@@ -433,6 +433,17 @@ pub fn probe_encoders(
         .collect())
 }
 
+/// The attentive force probe of `recipe` on the raw input patches of `data` (no encoder), once
+/// per probe seed in `seeds`: RMSE in mN.
+pub fn probe_patches(recipe: &Recipe, data: &[PathBuf], seeds: &[u64]) -> Result<Vec<f64>, Error> {
+    recipe.validate()?;
+    let set = probe_set(recipe, data)?;
+    Ok(seeds
+        .iter()
+        .map(|&seed| set.score_patches(recipe.encoder.patch_size, recipe.log.probe_epochs, seed))
+        .collect())
+}
+
 /// The AdamW optimizer of a recipe.
 pub fn optimizer(recipe: &Recipe) -> burn::optim::ModuleOptimizer {
     AdamWConfig::new()
