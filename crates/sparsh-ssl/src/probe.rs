@@ -111,8 +111,7 @@ impl ProbeSet {
 
     /// The attentive probe (as in [`ProbeSet::score`]) on the raw input patches instead of an
     /// encoder's tokens: the `patch`×`patch` squares of every frame and channel of a sample,
-    /// flattened into one token each. What any encoder's tokens are up against: a randomly
-    /// initialised ViT maps these patches almost linearly, and the probe reads its tokens alike.
+    /// flattened into one token each (no positions): what any encoder's tokens are up against.
     pub fn score_patches(&self, patch: usize, attentive_epochs: usize, seed: u64) -> f64 {
         let (tokens, dims) = self.patch_tokens(patch);
         attentive_score(

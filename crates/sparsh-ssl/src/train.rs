@@ -397,7 +397,7 @@ fn probe_set(recipe: &Recipe, data: &[PathBuf]) -> Result<ProbeSet, Error> {
         Error::file(
             first,
             "no force probe: it needs force labels on at least 10 frames of several sequences \
-             (and [log] probe_max_samples ≥ 10)",
+             (and [log] probe_max_samples ≥ 10, a probe_label_fraction that keeps a sample)",
         )
     })
 }

@@ -204,6 +204,8 @@ fn label_budget_thins_the_fitted_samples_only() {
     assert_eq!((quarter, held_out_q), (14, 14));
     let (tenth, _) = ProbeSet::new(&sampler, 1000, 4, 0.1).unwrap().sizes();
     assert_eq!(tenth, 5);
+    // a budget that keeps no training sample leaves nothing to fit
+    assert!(ProbeSet::new(&sampler, 1000, 4, 0.001).is_none());
     for f in [0.0, -0.5, 1.5, f64::NAN] {
         let mut bad = r.clone();
         bad.log.probe_label_fraction = f;
