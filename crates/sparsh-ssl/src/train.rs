@@ -437,6 +437,11 @@ pub fn probe_encoders(
 /// per probe seed in `seeds`: RMSE in mN.
 pub fn probe_patches(recipe: &Recipe, data: &[PathBuf], seeds: &[u64]) -> Result<Vec<f64>, Error> {
     recipe.validate()?;
+    if recipe.log.probe_epochs == 0 {
+        return Err(Error::Config(
+            "the raw-patch probe is an attentive probe: set log.probe_epochs above 0".into(),
+        ));
+    }
     let set = probe_set(recipe, data)?;
     Ok(seeds
         .iter()

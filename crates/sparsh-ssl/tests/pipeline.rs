@@ -7,7 +7,7 @@ use image::{Rgb, RgbImage};
 use sparsh_ssl::data::{Dataset, Sampler};
 use sparsh_ssl::probe::ProbeSet;
 use sparsh_ssl::recipe::Recipe;
-use sparsh_ssl::train::{RunOptions, load_data, probe_encoders, run, seeded_module};
+use sparsh_ssl::train::{RunOptions, load_data, probe_encoders, probe_patches, run, seeded_module};
 use sparsh_ssl::weights::{load_encoder, save_encoder};
 
 /// burn's random generator is process-wide and parameters draw from it when first used, so
@@ -206,6 +206,13 @@ fn label_budget_thins_the_fitted_samples_only() {
     assert_eq!(tenth, 5);
     // a budget that keeps no training sample leaves nothing to fit
     assert!(ProbeSet::new(&sampler, 1000, 4, 0.001).is_none());
+    // the raw-patch probe has no ridge fallback: without attentive epochs it refuses
+    let mut ridge_only = r.clone();
+    ridge_only.log.probe_epochs = 0;
+    let err = probe_patches(&ridge_only, std::slice::from_ref(&data), &[0])
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("probe_epochs"), "{err}");
     for f in [0.0, -0.5, 1.5, f64::NAN] {
         let mut bad = r.clone();
         bad.log.probe_label_fraction = f;
