@@ -352,7 +352,12 @@ fn validation_cases_pass() {
 }
 
 proptest! {
-    #![proptest_config(ProptestConfig::with_cases(12))]
+    // a fixed seed: every run draws the same cases
+    #![proptest_config(ProptestConfig {
+        cases: 12,
+        rng_seed: proptest::test_runner::RngSeed::Fixed(11),
+        ..ProptestConfig::default()
+    })]
 
     /// Under load control, Σ p dA equals the applied load.
     #[test]

@@ -3,6 +3,8 @@
 use std::path::{Path, PathBuf};
 
 use glam::Vec3;
+use proptest::prelude::*;
+use proptest::test_runner::RngSeed;
 use sparsh_scene::{Indenter, Scene, SceneError, TriMesh};
 
 const BASE: &str = r#"
@@ -404,4 +406,127 @@ fn bad_optics_sections_are_named() {
     );
     let line = error_of(&format!("{BASE}[optics]\nmodel = \"raytraced\"\n"));
     assert!(line.contains("raytraced"), "{line}");
+}
+
+/// A scene with more numeric fields than [`BASE`], for [`any_number_in_any_field_loads_or_is_named`].
+const NUMERIC: &str = r#"
+seed = 3
+[sensor]
+preset = "digit"
+width_px = 64
+height_px = 48
+mm_per_px = 0.06
+fps = 60.0
+[gel]
+youngs_modulus_kpa = 200.0
+poisson_ratio = 0.48
+thickness_mm = 3.0
+friction = 0.8
+[indenter]
+shape = "sphere"
+radius_mm = 5.0
+[[trajectory]]
+time_s = 0.0
+position_mm = [0.0, 0.0, 0.5]
+rotation_deg = [0.0, 0.0, 0.0]
+[[trajectory]]
+time_s = 2.0
+position_mm = [0.0, 0.0, -1.0]
+rotation_deg = [0.0, 0.0, 10.0]
+[optics]
+noise_std = 1.0
+"#;
+
+/// The numbers of [`NUMERIC`]: (line, byte range) of each literal.
+fn numeric_sites() -> Vec<(usize, std::ops::Range<usize>)> {
+    let mut sites = Vec::new();
+    for (l, line) in NUMERIC.lines().enumerate() {
+        let Some(eq) = line.find(" = ") else { continue };
+        let rhs = eq + 3;
+        let mut start = None;
+        for (i, c) in line[rhs..].char_indices().map(|(i, c)| (i + rhs, c)) {
+            let numeric = c.is_ascii_digit() || c == '.' || c == '-';
+            match (start, numeric) {
+                (None, true) => start = Some(i),
+                (Some(s), false) => {
+                    sites.push((l, s..i));
+                    start = None;
+                }
+                _ => {}
+            }
+        }
+        if let Some(s) = start {
+            sites.push((l, s..line.len()));
+        }
+    }
+    sites
+}
+
+/// A TOML literal for `value`: `nan`, `inf` and `-inf` are TOML floats.
+fn toml_number(value: f64) -> String {
+    if value.is_nan() {
+        "nan".into()
+    } else if value.is_infinite() {
+        if value > 0.0 { "inf" } else { "-inf" }.into()
+    } else {
+        format!("{value:?}")
+    }
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig {
+        cases: 256,
+        rng_seed: RngSeed::Fixed(7),
+        ..ProptestConfig::default()
+    })]
+
+    /// Whatever number stands in whatever numeric field, the scene either loads or is refused
+    /// with one line naming the file, never a panic; a non-finite number never loads.
+    #[test]
+    fn any_number_in_any_field_loads_or_is_named(
+        site in 0usize..25,
+        value in prop_oneof![
+            Just(f64::NAN),
+            Just(f64::INFINITY),
+            Just(f64::NEG_INFINITY),
+            Just(-0.0),
+            Just(0.0),
+            -1e6f64..1e6,
+            1e-9f64..1.0,
+        ],
+        integral in any::<bool>(),
+    ) {
+        let sites = numeric_sites();
+        prop_assert_eq!(sites.len(), 25);
+        let (line, range) = sites[site].clone();
+        let literal = if integral && value.is_finite() {
+            format!("{}", value.trunc() as i64)
+        } else {
+            toml_number(value)
+        };
+        let text: Vec<String> = NUMERIC
+            .lines()
+            .enumerate()
+            .map(|(l, s)| {
+                if l == line {
+                    format!("{}{}{}", &s[..range.start], literal, &s[range.end..])
+                } else {
+                    s.to_string()
+                }
+            })
+            .collect();
+        match parse(&text.join("\n")) {
+            Ok(_) => prop_assert!(
+                value.is_finite(),
+                "{} loaded with {}",
+                NUMERIC.lines().nth(line).unwrap(),
+                literal
+            ),
+            Err(err) => {
+                let message = err.to_string();
+                prop_assert!(!message.contains('\n'), "{}", message);
+                prop_assert!(message.starts_with("scenes/test.toml"), "{}", message);
+            }
+        }
+    }
 }
