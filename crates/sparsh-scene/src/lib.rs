@@ -28,7 +28,7 @@ pub use grid::Grid;
 pub use indenter::{Anchor, Indenter, IndenterSpec, LengthUnit, MeshIndenter, ShapeKind, TriMesh};
 pub use optics::{OpticsModel, OpticsSpec};
 pub use sensor::{Light, MarkerGrid, PRESETS, SensorConfig};
-pub use trajectory::{FrameTarget, Keyframe, Pose, sample};
+pub use trajectory::{FrameTarget, Keyframe, MAX_FRAMES, Pose, sample};
 
 /// The gel's elastic and frictional properties (`[gel]`).
 #[derive(Debug, Clone, Copy, PartialEq, Deserialize)]
@@ -437,6 +437,19 @@ impl Scene {
                     format!("must be ≥ 0, got {f}"),
                 ));
             }
+        }
+        let last = trajectory.len() - 1;
+        let span_frames = (trajectory[last].time_s - trajectory[0].time_s) * sensor.fps;
+        if span_frames.round() > MAX_FRAMES as f64 {
+            return Err(SceneError::invalid(
+                path,
+                format!("trajectory[{last}].time_s"),
+                format!(
+                    "the trajectory spans {span_frames:.0} frames at {} fps, more than the \
+                     {MAX_FRAMES} a scene may render; split it into several scenes",
+                    sensor.fps
+                ),
+            ));
         }
         let indenter = file.indenter.build(path)?;
         let fixed = |kind| {

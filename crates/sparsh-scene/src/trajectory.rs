@@ -60,6 +60,10 @@ pub struct FrameTarget {
     pub normal_force_n: Option<f64>,
 }
 
+/// Most frames one scene's trajectory may span: 1 000 000 (4.6 h at 60 fps, ~100 GB of
+/// 320×240 PNGs), so a mistyped time fails at load instead of exhausting memory.
+pub const MAX_FRAMES: usize = 1_000_000;
+
 /// Frames sampled at `fps` over the keyframes' span: frame k is at t₀ + k/fps, and there are
 /// round((t_last − t₀)·fps) of them (a 2 s trajectory at 60 fps has 120 frames); a single
 /// keyframe gives one frame. Between keyframes, position, rotation and force are linear in time.

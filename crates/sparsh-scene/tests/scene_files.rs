@@ -144,6 +144,18 @@ fn trajectory_times_must_increase() {
     assert!(line.contains("trajectory[1].time_s"), "{line}");
 }
 
+#[test]
+fn trajectory_longer_than_a_scene_may_render_is_named() {
+    // 60 fps (the DIGIT preset) × 20 000 s = 1.2 million frames: a mistyped 20.0.
+    let line = error_of(&BASE.replace("time_s = 2.0", "time_s = 20000.0"));
+    assert!(line.contains("trajectory[1].time_s"), "{line}");
+    assert!(line.contains("1200000 frames"), "{line}");
+    let longest = sparsh_scene::MAX_FRAMES as f64 / 60.0;
+    let scene = parse(&BASE.replace("time_s = 2.0", &format!("time_s = {longest:?}")))
+        .expect("a trajectory of exactly the limit loads");
+    assert_eq!(scene.frames().len(), sparsh_scene::MAX_FRAMES);
+}
+
 fn mesh_scene(dir: &Path, file: &str) -> (PathBuf, String) {
     let text = BASE.replace(
         "shape = \"sphere\"\nradius_mm = 5.0",
