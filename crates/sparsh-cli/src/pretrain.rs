@@ -35,8 +35,8 @@ pub fn pretrain(
     let summary = run(&recipe, &opts, &mut |r| {
         if let Some(p) = r.probe {
             probe_msg = format!(
-                " probe {:.1} mN (linear {:.1}, mean {:.1}, feature std {:.3})",
-                p.rmse_mn, p.linear_mn, p.baseline_mn, p.feature_std
+                " probe {:.1} mN (linear {:.1}, mean {:.1}, feature std {:.3}, rank {:.1})",
+                p.rmse_mn, p.linear_mn, p.baseline_mn, p.feature_std, p.feature_rank
             );
         }
         if r.loss.is_finite() {
@@ -122,6 +122,13 @@ pub fn probe(
     println!(
         "force RMSE in mN; predicting the training mean scores {:.1} mN",
         rows[0].0.baseline_mn
+    );
+    println!(
+        "feature rank (participation ratio of the tokens' frame-to-frame variation, of {}): \
+         random init {:.1}, pretrained {}",
+        recipe.encoder_config()?.embed_dim,
+        rows[0].0.feature_rank,
+        cell(rows[0].1.map(|s| s.feature_rank))
     );
     if patches {
         let scores = probe_patches(&recipe, data, &seeds)?;

@@ -36,6 +36,10 @@ pub struct ProbeScore {
     /// Spread of the pooled features across samples: the standard deviation over samples,
     /// averaged over feature dimensions (near 0 when the encoder has collapsed to a constant).
     pub feature_std: f64,
+    /// Effective number of directions the tokens vary along from frame to frame:
+    /// [`content_rank`] of the tokens (1 to the width; low when the encoder has collapsed
+    /// onto a few dimensions).
+    pub feature_rank: f64,
 }
 
 impl ProbeSet {
@@ -197,6 +201,7 @@ impl ProbeSet {
             linear_mn: linear.rmse_mn,
             baseline_mn: linear.baseline_mn,
             feature_std: feature_std(&pooled),
+            feature_rank: content_rank(&tokens, dims),
         }
     }
 }
@@ -405,6 +410,51 @@ pub fn feature_std(x: &[Vec<f64>]) -> f64 {
         / d as f64
 }
 
+/// Participation ratio (Σλ)² / Σλ² = tr(C)² / ‖C‖²_F of the covariance C of the tokens'
+/// deviations from their per-position means (`tokens` `[samples, tokens, dim]`, row-major):
+/// the effective number of feature directions the content varies along, `dim` for isotropic
+/// variation and 1 when it lies on one line (the dimensional-collapse measure of Garrido et
+/// al., "RankMe", ICML 2023, in its second-moment form); 0 when no token varies.
+pub fn content_rank(tokens: &[f32], dims: [usize; 3]) -> f64 {
+    let [n, t, d] = dims;
+    let mut position_mean = vec![0.0f64; t * d];
+    for sample in tokens.chunks(t * d) {
+        for (m, &v) in position_mean.iter_mut().zip(sample) {
+            *m += v as f64;
+        }
+    }
+    // sum, then divide: exact for a constant token (the f32 sums fit f64's mantissa)
+    for m in &mut position_mean {
+        *m /= n as f64;
+    }
+    let mut cov = vec![0.0f64; d * d];
+    let mut dev = vec![0.0f64; d];
+    for sample in tokens.chunks(t * d) {
+        for (token, mean) in sample.chunks(d).zip(position_mean.chunks(d)) {
+            for ((x, &v), &m) in dev.iter_mut().zip(token).zip(mean) {
+                *x = v as f64 - m;
+            }
+            for (a, &xa) in dev.iter().enumerate() {
+                for (c, &xb) in cov[a * d..=a * d + a].iter_mut().zip(&dev) {
+                    *c += xa * xb;
+                }
+            }
+        }
+    }
+    let (mut trace, mut frobenius) = (0.0, 0.0);
+    for a in 0..d {
+        trace += cov[a * d + a];
+        for b in 0..=a {
+            frobenius += if a == b { 1.0 } else { 2.0 } * cov[a * d + b].powi(2);
+        }
+    }
+    if frobenius > 0.0 {
+        trace * trace / frobenius
+    } else {
+        0.0
+    }
+}
+
 /// Ridge regression on standardized features (λ = 1e-2 · samples), scored on the test rows
 /// (`rmse_mn` = `linear_mn`; `feature_std` of the result is left at 0, [`feature_std`]
 /// computes it).
@@ -451,6 +501,7 @@ pub fn ridge_score(x: &[Vec<f64>], y: &[[f64; 3]], test: &[bool]) -> ProbeScore 
         linear_mn: rmse_mn,
         baseline_mn: 1000.0 * (se0 / n).sqrt(),
         feature_std: 0.0,
+        feature_rank: 0.0,
     }
 }
 
@@ -622,6 +673,37 @@ mod tests {
             &tokens[t..t + 8],
             &[108.0, 109.0, 112.0, 113.0, 124.0, 125.0, 128.0, 129.0]
         );
+    }
+
+    #[test]
+    fn content_rank_counts_the_directions_tokens_vary_along() {
+        let mut rng = Rng::for_step(5, 0, 0);
+        let (n, t, d) = (400, 3, 8);
+        // a per-position offset that never varies, plus content along `k` directions
+        let tokens = |k: usize, rng: &mut Rng| -> Vec<f32> {
+            (0..n * t * d)
+                .map(|i| {
+                    let (token, j) = ((i / d) % t, i % d);
+                    let content = if j < k { rng.range_f64(-1.0, 1.0) } else { 0.0 };
+                    (10.0 * token as f64 + content) as f32
+                })
+                .collect()
+        };
+        // isotropic content over k = 8 and 3 directions: the ratio approaches k
+        let all = content_rank(&tokens(8, &mut rng), [n, t, d]);
+        let three = content_rank(&tokens(3, &mut rng), [n, t, d]);
+        assert!((all - 8.0).abs() < 0.4, "{all}");
+        assert!((three - 3.0).abs() < 0.2, "{three}");
+        // one direction, at any scale, and no variation at all
+        let line: Vec<f32> = (0..n * t)
+            .flat_map(|i| {
+                let s = (i % 7) as f32 - 3.0;
+                (0..d).map(move |j| 2.0 * s * j as f32)
+            })
+            .collect();
+        assert!((content_rank(&line, [n, t, d]) - 1.0).abs() < 1e-9);
+        let constant = vec![0.7f32; n * t * d];
+        assert_eq!(content_rank(&constant, [n, t, d]), 0.0);
     }
 
     #[test]

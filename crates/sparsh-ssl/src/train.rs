@@ -2,7 +2,7 @@
 //! learning rate and the online force probe, atomic checkpoints and exact resume.
 //!
 //! A run directory holds `recipe.toml` (the recipe it was started with), `log.csv`
-//! (`step,loss,lr,probe_rmse_mn,probe_linear_mn,probe_baseline_mn,probe_feature_std,wait_s,step_s`), `checkpoint/`
+//! (`step,loss,lr,probe_rmse_mn,probe_linear_mn,probe_baseline_mn,probe_feature_std,probe_feature_rank,wait_s,step_s`), `checkpoint/`
 //! (`model.bpk`, `optim.bpk`, `state.json`, `encoder.safetensors`) and, at the end,
 //! `encoder.safetensors`. A checkpoint is written to `checkpoint.tmp/` and renamed into place, so
 //! an interrupted write never leaves a half checkpoint. Every random draw of step `s` comes from
@@ -512,23 +512,24 @@ pub fn load_data(recipe: &Recipe, dirs: &[PathBuf]) -> Result<Dataset, Error> {
 }
 
 fn csv_header() -> &'static str {
-    "step,loss,lr,probe_rmse_mn,probe_linear_mn,probe_baseline_mn,probe_feature_std,wait_s,step_s\n"
+    "step,loss,lr,probe_rmse_mn,probe_linear_mn,probe_baseline_mn,probe_feature_std,probe_feature_rank,wait_s,step_s\n"
 }
 
 fn csv_row(r: &StepReport, probe_only: bool) -> String {
-    let (p, l, b, f) = r.probe.map_or(Default::default(), |p| {
+    let (p, l, b, f, k) = r.probe.map_or(Default::default(), |p| {
         (
             format!("{:.3}", p.rmse_mn),
             format!("{:.3}", p.linear_mn),
             format!("{:.3}", p.baseline_mn),
             format!("{:.5}", p.feature_std),
+            format!("{:.2}", p.feature_rank),
         )
     });
     if probe_only {
-        format!("{},,,{p},{l},{b},{f},,\n", r.step)
+        format!("{},,,{p},{l},{b},{f},{k},,\n", r.step)
     } else {
         format!(
-            "{},{:.6},{:.6e},{p},{l},{b},{f},{:.4},{:.4}\n",
+            "{},{:.6},{:.6e},{p},{l},{b},{f},{k},{:.4},{:.4}\n",
             r.step, r.loss, r.lr, r.wait_s, r.step_s
         )
     }
