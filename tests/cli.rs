@@ -778,18 +778,25 @@ fn calibrated_model_with_markers_and_noise_is_deterministic() {
 }
 
 #[test]
-fn probe_refuses_a_label_budget_outside_zero_to_one() {
+fn probe_refuses_a_label_budget_or_random_init_count_out_of_range() {
     let tmp = tempfile::tempdir().unwrap();
     let recipe = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../assets/ssl/mae_tiny_cpu.toml");
-    for bad in ["0", "1.5", "-0.1"] {
+    let bad = [
+        ("--label-fraction", "0"),
+        ("--label-fraction", "1.5"),
+        ("--label-fraction", "-0.1"),
+        ("--random-inits", "0"),
+        ("--random-inits", "101"),
+    ];
+    for (flag, value) in bad {
         let out = sparsh(&[
             "probe",
             "--config",
             recipe.to_str().unwrap(),
             "--data",
             tmp.path().to_str().unwrap(),
-            &format!("--label-fraction={bad}"),
+            &format!("{flag}={value}"),
         ]);
-        assert_user_error(&out, "--label-fraction");
+        assert_user_error(&out, flag);
     }
 }

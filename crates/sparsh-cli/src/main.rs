@@ -232,6 +232,10 @@ enum Command {
         /// encoders' tokens are up against.
         #[arg(long)]
         patches: bool,
+        /// Also probe this many randomly initialised encoders (recipe seeds seed, seed + 1, …)
+        /// and rank the pretrained encoder among them: one random draw is a noisy baseline.
+        #[arg(long)]
+        random_inits: Option<u64>,
     },
 }
 
@@ -353,6 +357,7 @@ fn run(cli: Cli) -> Result<()> {
             seeds,
             label_fraction,
             patches,
+            random_inits,
         } => pretrain::probe(
             &config,
             &data,
@@ -360,6 +365,7 @@ fn run(cli: Cli) -> Result<()> {
             seeds,
             label_fraction,
             patches,
+            random_inits,
         ),
     }
 }

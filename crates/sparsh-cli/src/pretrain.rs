@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 use anyhow::Result;
 use indicatif::{ProgressBar, ProgressStyle};
 use sparsh_ssl::recipe::Recipe;
-use sparsh_ssl::train::{RunOptions, probe_encoders, probe_patches, run};
+use sparsh_ssl::train::{RunOptions, probe_encoders, probe_patches, probe_random_encoders, run};
 
 /// Runs (or resumes) the recipe `config` on `data`, writing into `out`.
 pub fn pretrain(
@@ -65,7 +65,8 @@ pub fn pretrain(
 /// `sparsh probe`: the recipe's force probes (attentive and ridge, RMSE in mN on held-out
 /// sequences) on its random encoder and on `encoder`, one row per probe seed and their mean.
 /// `label_fraction` replaces the recipe's `[log] probe_label_fraction`; `patches` adds the
-/// attentive probe on the raw input patches.
+/// attentive probe on the raw input patches; `random_inits` probes that many random encoders
+/// (recipe seeds from the recipe's on) and ranks `encoder` among them.
 pub fn probe(
     config: &Path,
     data: &[PathBuf],
@@ -73,11 +74,18 @@ pub fn probe(
     seeds: u64,
     label_fraction: Option<f64>,
     patches: bool,
+    random_inits: Option<u64>,
 ) -> Result<()> {
     anyhow::ensure!(
         (1..=100).contains(&seeds),
         "--seeds must be 1 to 100, got {seeds}"
     );
+    if let Some(k) = random_inits {
+        anyhow::ensure!(
+            (1..=100).contains(&k),
+            "--random-inits must be 1 to 100, got {k}"
+        );
+    }
     let mut recipe = Recipe::load(config)?;
     if let Some(f) = label_fraction {
         anyhow::ensure!(
@@ -130,6 +138,34 @@ pub fn probe(
         rows[0].0.feature_rank,
         cell(rows[0].1.map(|s| s.feature_rank))
     );
+    if let Some(k) = random_inits {
+        let encoder_seeds: Vec<u64> = (0..k).map(|i| recipe.seed.wrapping_add(i)).collect();
+        let draws = probe_random_encoders(&recipe, data, &encoder_seeds, &seeds)?;
+        let means: Vec<f64> = draws
+            .iter()
+            .map(|r| r.iter().map(|s| s.rmse_mn).sum::<f64>() / r.len() as f64)
+            .collect();
+        let spread = Spread::of(&means);
+        let list: Vec<String> = means.iter().map(|v| format!("{v:.1}")).collect();
+        println!(
+            "random inits (recipe seeds {}..={}), attentive probe, mean over probe seeds: {} mN; \
+             mean {:.1}, standard deviation {:.1}, range {:.1}–{:.1}",
+            encoder_seeds[0],
+            encoder_seeds[encoder_seeds.len() - 1],
+            list.join(" / "),
+            spread.mean,
+            spread.std,
+            spread.min,
+            spread.max
+        );
+        if encoder.is_some() {
+            let pretrained = sums[2] / n;
+            let beaten = means.iter().filter(|&&m| pretrained < m).count();
+            println!(
+                "pretrained {pretrained:.1} mN reads force better than {beaten} of {k} random inits"
+            );
+        }
+    }
     if patches {
         let scores = probe_patches(&recipe, data, &seeds)?;
         let list: Vec<String> = scores.iter().map(|v| format!("{v:.1}")).collect();
@@ -141,4 +177,40 @@ pub fn probe(
         );
     }
     Ok(())
+}
+
+/// Mean, sample standard deviation and range of a list of scores.
+struct Spread {
+    mean: f64,
+    std: f64,
+    min: f64,
+    max: f64,
+}
+
+impl Spread {
+    fn of(values: &[f64]) -> Self {
+        let n = values.len() as f64;
+        let mean = values.iter().sum::<f64>() / n;
+        let var = values.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1.0).max(1.0);
+        Self {
+            mean,
+            std: var.sqrt(),
+            min: values.iter().copied().fold(f64::INFINITY, f64::min),
+            max: values.iter().copied().fold(f64::NEG_INFINITY, f64::max),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::Spread;
+
+    #[test]
+    fn spread_is_the_sample_statistics() {
+        let s = Spread::of(&[4.0, 1.0, 3.0, 2.0]);
+        assert_eq!((s.mean, s.min, s.max), (2.5, 1.0, 4.0));
+        // Σ(x − 2.5)² = 5 over n − 1 = 3
+        assert!((s.std - (5.0f64 / 3.0).sqrt()).abs() < 1e-12);
+        assert_eq!(Spread::of(&[7.0]).std, 0.0);
+    }
 }

@@ -433,6 +433,36 @@ pub fn probe_encoders(
         .collect())
 }
 
+/// The force probes of `recipe` on `data` for randomly initialised encoders, each drawn as a run
+/// of the recipe with that seed draws its own, once per probe seed in `probe_seeds`: one row per
+/// seed in `encoder_seeds`. Their spread is the yardstick for a pretrained encoder: two draws of
+/// the same architecture can read force tens of mN apart, so one random encoder is a noisy
+/// baseline. Errors when the data carry no force labels.
+pub fn probe_random_encoders(
+    recipe: &Recipe,
+    data: &[PathBuf],
+    encoder_seeds: &[u64],
+    probe_seeds: &[u64],
+) -> Result<Vec<Vec<ProbeScore>>, Error> {
+    recipe.validate()?;
+    let set = probe_set(recipe, data)?;
+    let device = Device::flex().autodiff();
+    encoder_seeds
+        .iter()
+        .map(|&seed| {
+            let drawn = Recipe {
+                seed,
+                ..recipe.clone()
+            };
+            let encoder = Trainee::init(&drawn, &device)?.encoder().clone();
+            Ok(probe_seeds
+                .iter()
+                .map(|&p| set.score(&encoder, recipe.log.probe_epochs, p))
+                .collect())
+        })
+        .collect()
+}
+
 /// The attentive force probe of `recipe` on the raw input patches of `data` (no encoder), once
 /// per probe seed in `seeds`: RMSE in mN.
 pub fn probe_patches(recipe: &Recipe, data: &[PathBuf], seeds: &[u64]) -> Result<Vec<f64>, Error> {

@@ -7,7 +7,9 @@ use image::{Rgb, RgbImage};
 use sparsh_ssl::data::{Dataset, Sampler};
 use sparsh_ssl::probe::ProbeSet;
 use sparsh_ssl::recipe::Recipe;
-use sparsh_ssl::train::{RunOptions, load_data, probe_encoders, probe_patches, run, seeded_module};
+use sparsh_ssl::train::{
+    RunOptions, load_data, probe_encoders, probe_patches, probe_random_encoders, run, seeded_module,
+};
 use sparsh_ssl::weights::{load_encoder, save_encoder};
 
 /// burn's random generator is process-wide and parameters draw from it when first used, so
@@ -253,6 +255,18 @@ fn standalone_probe_reproduces_the_logged_probe() {
     assert_eq!(random.linear_mn, logged.0.linear_mn);
     assert_eq!(trained.unwrap().rmse_mn, logged.1.rmse_mn);
     assert_eq!(trained.unwrap().linear_mn, logged.1.linear_mn);
+    // random encoders drawn by seed: the recipe's own seed is the run's step-0 encoder, the
+    // next seed another draw that the probe scores differently
+    let draws = probe_random_encoders(
+        &r,
+        std::slice::from_ref(&data),
+        &[r.seed, r.seed + 1],
+        &[r.seed],
+    )
+    .unwrap();
+    assert_eq!(draws[0][0].rmse_mn, logged.0.rmse_mn);
+    assert_eq!(draws[0][0].linear_mn, logged.0.linear_mn);
+    assert_ne!(draws[1][0].linear_mn, draws[0][0].linear_mn);
     // data without force labels (a Sparsh pickle) cannot be probed: one line naming the
     // directory
     let unlabelled = tmp.path().join("unlabelled");
