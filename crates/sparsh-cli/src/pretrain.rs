@@ -139,11 +139,15 @@ pub fn probe(
         cell(rows[0].1.map(|s| s.feature_rank))
     );
     if let Some(k) = random_inits {
+        // the recipe's own seed is the random encoder of the table above; draw the others
         let encoder_seeds: Vec<u64> = (0..k).map(|i| recipe.seed.wrapping_add(i)).collect();
-        let draws = probe_random_encoders(&recipe, data, &encoder_seeds, &seeds)?;
-        let means: Vec<f64> = draws
-            .iter()
-            .map(|r| r.iter().map(|s| s.rmse_mn).sum::<f64>() / r.len() as f64)
+        let draws = probe_random_encoders(&recipe, data, &encoder_seeds[1..], &seeds)?;
+        let means: Vec<f64> = std::iter::once(sums[0] / n)
+            .chain(
+                draws
+                    .iter()
+                    .map(|r| r.iter().map(|s| s.rmse_mn).sum::<f64>() / r.len() as f64),
+            )
             .collect();
         let spread = Spread::of(&means);
         let list: Vec<String> = means.iter().map(|v| format!("{v:.1}")).collect();
