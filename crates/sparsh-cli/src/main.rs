@@ -4,6 +4,7 @@ mod dataset;
 mod optics;
 mod pretrain;
 mod study;
+mod tacbench;
 mod validate;
 
 use std::path::PathBuf;
@@ -237,6 +238,25 @@ enum Command {
         #[arg(long)]
         random_inits: Option<u64>,
     },
+    /// TacBench: frozen encoders read out by the attentive probe on force, slip, pose,
+    /// texture and grasp tasks at label budgets, against random draws of the same
+    /// architecture, the probe on raw patches, the same ViT trained end to end and a constant
+    /// predictor; writes results.csv, results.md and a chart per task.
+    Tacbench {
+        /// Benchmark config (TOML, e.g. tacbench/cpu_small.toml); its paths are relative to it.
+        #[arg(long)]
+        config: PathBuf,
+        /// Run directory (units/, results.csv, results.md, budget_TASK.png/.svg).
+        #[arg(long)]
+        out: PathBuf,
+        /// Small settings for a smoke run: 2 epochs, 2 random draws, budgets 1 and 0.1, at
+        /// most 20 sequences per task.
+        #[arg(long)]
+        quick: bool,
+        /// Continue a run in --out, skipping the units it finished.
+        #[arg(long)]
+        resume: bool,
+    },
 }
 
 fn main() -> ExitCode {
@@ -367,6 +387,12 @@ fn run(cli: Cli) -> Result<()> {
             patches,
             random_inits,
         ),
+        Command::Tacbench {
+            config,
+            out,
+            quick,
+            resume,
+        } => tacbench::tacbench(&config, &out, quick, resume),
     }
 }
 

@@ -12,8 +12,8 @@ use rand_chacha::ChaCha8Rng;
 use serde::Deserialize;
 
 use crate::{
-    Anchor, Gel, IndenterSpec, Keyframe, LengthUnit, OpticsSpec, OutputSpec, Scene, SceneError,
-    SensorSection, ShapeKind, SolverKind, check_margin, check_stride, one_cell,
+    Anchor, Gel, IndenterSpec, Keyframe, LengthUnit, OpticsSpec, OutputSpec, Pattern, Scene,
+    SceneError, SensorSection, ShapeKind, SolverKind, check_margin, check_stride, one_cell,
 };
 
 /// A number, or a `[min, max]` range drawn uniformly per sequence.
@@ -91,6 +91,10 @@ struct IndenterRanges {
     height_mm: Option<Range>,
     half_angle_deg: Option<Range>,
     size_mm: Option<[Range; 3]>,
+    pattern: Option<Pattern>,
+    pitch_mm: Option<Range>,
+    depth_mm: Option<Range>,
+    crown_radius_mm: Option<Range>,
     mesh: Option<PathBuf>,
     scale: Option<Range>,
     units: Option<LengthUnit>,
@@ -402,6 +406,10 @@ impl FamilyFile {
                     size_mm: entry
                         .size_mm
                         .map(|s| s.map(|r| [r.bounds().0, r.bounds().1][pick])),
+                    pattern: entry.pattern,
+                    pitch_mm: end(entry.pitch_mm),
+                    depth_mm: end(entry.depth_mm),
+                    crown_radius_mm: end(entry.crown_radius_mm),
                     mesh: entry.mesh.clone(),
                     scale: end(entry.scale),
                     units: entry.units,
@@ -502,10 +510,21 @@ impl FamilyFile {
             height_mm: draw(choice.height_mm),
             half_angle_deg: draw(choice.half_angle_deg),
             size_mm: choice.size_mm.map(|s| s.map(|r| r.sample(&mut rng))),
+            pattern: choice.pattern,
+            pitch_mm: None,
+            depth_mm: None,
+            crown_radius_mm: None,
             mesh: choice.mesh.clone(),
             scale: choice.scale.map(|r| r.sample(&mut rng)),
             units: choice.units,
             anchor: choice.anchor,
+        };
+        // Drawn after the other keys, so the draws of files without them stay as they were.
+        let indenter_spec = IndenterSpec {
+            pitch_mm: choice.pitch_mm.map(|r| r.sample(&mut rng)),
+            depth_mm: choice.depth_mm.map(|r| r.sample(&mut rng)),
+            crown_radius_mm: choice.crown_radius_mm.map(|r| r.sample(&mut rng)),
+            ..indenter_spec
         };
         let indenter = indenter_spec
             .build(path)

@@ -1,5 +1,5 @@
-//! Indenters: analytic primitives and triangle meshes (OBJ via tobj, glTF/GLB via gltf), each
-//! able to cast a ray against itself in its own frame.
+//! Indenters: analytic primitives, procedural textured plates and triangle meshes (OBJ via tobj,
+//! glTF/GLB via gltf), each able to cast a ray against itself in its own frame.
 //!
 //! Local frame: the indenter's tip (lowest point) is the origin and its body extends towards +z,
 //! so a pose with position z = −d presses it d millimetres into the gel.
@@ -27,8 +27,73 @@ pub enum ShapeKind {
     Cone,
     /// Box of `size_mm` = [x, y, z], bottom face down.
     Box,
+    /// Plate of `size_mm` whose underside carries a periodic relief: `pattern`, `pitch_mm`,
+    /// `depth_mm`, optionally crowned (`crown_radius_mm`), see [`TexturedPlate`].
+    Texture,
     /// Triangle mesh from `mesh` (.obj, .gltf, .glb).
     Mesh,
+}
+
+/// Relief of a textured plate's underside (`pattern` of `shape = "texture"`), periodic with
+/// `pitch_mm`. Each pattern has a crest at the local origin; its features are raised-cosine
+/// bumps, ridges and grooves, so the relief's slope is bounded.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Pattern {
+    /// Parallel round-topped ribs along y, `pitch` apart, each 0.6 pitch wide, flat between
+    /// (corduroy).
+    Ribs,
+    /// Plain weave: yarns along x and y, `pitch` apart, passing over and under each other at
+    /// alternate crossings (period 2 pitch).
+    Weave,
+    /// Diamond knurl: pyramids between two sets of V-grooves at ±45°, grooves `pitch` apart.
+    Knurl,
+    /// Round bumps of radius 0.3 pitch on a square grid of `pitch`, flat between.
+    Dots,
+}
+
+impl Pattern {
+    /// Relief profile τ ∈ [0, 1] (1 at a crest, 0 at the deepest trough) at (u, v) = (x, y) in
+    /// pitches.
+    pub fn profile(self, u: f64, v: f64) -> f64 {
+        use std::f64::consts::{FRAC_1_SQRT_2, PI};
+        // Offset from the nearest integer, in [−0.5, 0.5].
+        let frac = |t: f64| t - t.round();
+        // A raised-cosine bump of half-width w (pitches) and unit height.
+        let bump = |t: f64, w: f64| {
+            if t.abs() < w {
+                0.5 + 0.5 * (PI * t / w).cos()
+            } else {
+                0.0
+            }
+        };
+        match self {
+            Pattern::Ribs => bump(frac(u), 0.3),
+            Pattern::Weave => {
+                let (i, j) = (u.round(), v.round());
+                let warp = (0.6 + 0.4 * (PI * (v - i)).cos()) * bump(u - i, 0.5);
+                let weft = (0.6 + 0.4 * (PI * (u - j - 1.0)).cos()) * bump(v - j, 0.5);
+                warp.max(weft)
+            }
+            Pattern::Knurl => {
+                let tri = |t: f64| 1.0 - 2.0 * frac(t).abs();
+                tri(FRAC_1_SQRT_2 * (u + v)).min(tri(FRAC_1_SQRT_2 * (u - v)))
+            }
+            Pattern::Dots => bump(frac(u).hypot(frac(v)), 0.3),
+        }
+    }
+
+    /// An upper bound of |∇τ| (per pitch).
+    pub fn max_slope(self) -> f64 {
+        use std::f64::consts::PI;
+        match self {
+            // π/(2w) for a raised cosine of half-width w.
+            Pattern::Ribs | Pattern::Dots => PI / 0.6,
+            // Across a yarn π (w = 0.5), along it 0.4π.
+            Pattern::Weave => PI * (1.0f64 + 0.16).sqrt(),
+            Pattern::Knurl => 2.0,
+        }
+    }
 }
 
 /// Length unit of a mesh file.
@@ -77,8 +142,16 @@ pub struct IndenterSpec {
     pub height_mm: Option<f64>,
     /// Cone semi-angle between axis and face (degrees).
     pub half_angle_deg: Option<f64>,
-    /// Box edge lengths (mm).
+    /// Box edge lengths, or a textured plate's footprint and height (mm).
     pub size_mm: Option<[f64; 3]>,
+    /// Textured plate's relief pattern.
+    pub pattern: Option<Pattern>,
+    /// Textured plate's relief period (mm).
+    pub pitch_mm: Option<f64>,
+    /// Textured plate's relief depth, crest to trough (mm).
+    pub depth_mm: Option<f64>,
+    /// Textured plate's underside curvature radius (mm); default flat.
+    pub crown_radius_mm: Option<f64>,
     /// Mesh file, relative to the scene file.
     pub mesh: Option<PathBuf>,
     /// Mesh scale factor (after the unit conversion); default 1.
@@ -381,8 +454,116 @@ pub enum Indenter {
         /// Edge lengths (mm).
         size_mm: [f64; 3],
     },
+    /// A plate with a periodic relief on its underside.
+    Texture(TexturedPlate),
     /// A triangle mesh with its bounding volume hierarchy.
     Mesh(Box<MeshIndenter>),
+}
+
+/// A plate whose underside carries a periodic relief: the solid |x| ≤ sx/2, |y| ≤ sy/2,
+/// s(x, y) ≤ z ≤ sz with the underside
+///
+/// s(x, y) = (x² + y²)/(2 R) + depth · (1 − τ(x/pitch, y/pitch)),
+///
+/// τ the [`Pattern`]'s profile and R the crown radius (the paraboloid term is absent on a flat
+/// plate). A crowned plate touches the gel over a patch that grows with the press, like a fabric
+/// stretched over a rounded finger; a flat one meets it everywhere at once. Every pattern has a
+/// crest at the origin, so the tip (s = 0) is the local origin. Where the crown rises above the
+/// plate's height the footprint is cut away.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TexturedPlate {
+    /// Relief pattern.
+    pub pattern: Pattern,
+    /// Period of the relief (mm).
+    pub pitch_mm: f64,
+    /// Relief depth, crest to trough (mm).
+    pub depth_mm: f64,
+    /// Footprint [x, y] and height z of the plate (mm).
+    pub size_mm: [f64; 3],
+    /// Curvature radius of the underside (mm); `None` is flat.
+    pub crown_radius_mm: Option<f64>,
+}
+
+impl TexturedPlate {
+    /// Footprint and height when `size_mm` is not given: 20 × 20 mm, 5 mm tall.
+    pub const DEFAULT_SIZE_MM: [f64; 3] = [20.0, 20.0, 5.0];
+
+    /// Height s(x, y) of the underside above the tip (mm, ≥ 0), in the local frame.
+    pub fn underside_mm(&self, x: f64, y: f64) -> f64 {
+        let crown = self
+            .crown_radius_mm
+            .map_or(0.0, |r| (x * x + y * y) / (2.0 * r));
+        let tau = self.pattern.profile(x / self.pitch_mm, y / self.pitch_mm);
+        crown + self.depth_mm * (1.0 - tau)
+    }
+
+    /// An upper bound of the underside's slope |∇s| over the footprint.
+    pub fn max_slope(&self) -> f64 {
+        let [sx, sy, _] = self.size_mm;
+        let crown = self
+            .crown_radius_mm
+            .map_or(0.0, |r| (sx / 2.0).hypot(sy / 2.0) / r);
+        crown + self.depth_mm * self.pattern.max_slope() / self.pitch_mm
+    }
+
+    /// Entry of the ray `o + t·d` (unit `d`) into the plate. A ray along ±z meets the underside
+    /// in closed form. An oblique one is marched from where it enters the plate's bounding box:
+    /// each step is the distance the ray needs to reach the underside if the relief rose at its
+    /// steepest ([`TexturedPlate::max_slope`]), so no crossing is stepped over (steps are at
+    /// least 0.1 µm, at most 100 000 of them); the crossing is then refined by bisection.
+    fn ray_entry(&self, o: DVec3, d: DVec3) -> Option<f64> {
+        const MIN_STEP_MM: f64 = 1e-4;
+        let [sx, sy, sz] = self.size_mm;
+        let footprint = intersect(
+            slab(o.x, d.x, -sx / 2.0, sx / 2.0)?,
+            slab(o.y, d.y, -sy / 2.0, sy / 2.0)?,
+        )?;
+        let horizontal = d.x.hypot(d.y);
+        if horizontal < 1e-12 {
+            let s = self.underside_mm(o.x, o.y);
+            return entry(intersect(footprint, slab(o.z, d.z, s, sz)?)?);
+        }
+        let (t0, t1) = intersect(footprint, slab(o.z, d.z, 0.0, sz)?)?;
+        if t1 < 0.0 {
+            return None;
+        }
+        // How far above the underside the ray is at t: ≥ 0 inside the plate.
+        let above = |t: f64| {
+            let p = o + t * d;
+            p.z - self.underside_mm(p.x, p.y)
+        };
+        // |d above / dt| ≤ lipschitz.
+        let lipschitz = d.z.abs() + horizontal * self.max_slope();
+        let mut lo = t0;
+        let mut gap = above(lo);
+        if gap >= 0.0 {
+            return Some(t0);
+        }
+        let mut hi = lo;
+        for _ in 0..100_000 {
+            hi = (lo + (-gap / lipschitz).max(MIN_STEP_MM)).min(t1);
+            let next = above(hi);
+            if next >= 0.0 {
+                break;
+            }
+            if hi >= t1 {
+                return None;
+            }
+            (lo, gap) = (hi, next);
+        }
+        if above(hi) < 0.0 {
+            return None;
+        }
+        for _ in 0..60 {
+            let mid = 0.5 * (lo + hi);
+            if above(mid) >= 0.0 {
+                hi = mid;
+            } else {
+                lo = mid;
+            }
+        }
+        Some(hi)
+    }
 }
 
 /// A triangle mesh with a BVH over its triangles (obvhs).
@@ -440,7 +621,7 @@ impl Indenter {
                 half_angle_deg,
                 height_mm,
             } => height_mm / half_angle_deg.to_radians().cos(),
-            Indenter::Box { size_mm } => {
+            Indenter::Box { size_mm } | Indenter::Texture(TexturedPlate { size_mm, .. }) => {
                 DVec3::new(size_mm[0] / 2.0, size_mm[1] / 2.0, size_mm[2]).length()
             }
             Indenter::Mesh(m) => m
@@ -481,6 +662,7 @@ impl Indenter {
                 half_angle_deg,
                 height_mm,
             } => cone_entry(origin, dir, half_angle_deg.to_radians().tan(), *height_mm),
+            Indenter::Texture(plate) => plate.ray_entry(origin, dir),
             Indenter::Mesh(m) => {
                 let ray = Ray::new_inf(origin.as_vec3().into(), dir.as_vec3().into());
                 let mut hit = RayHit::none();
@@ -605,6 +787,10 @@ impl IndenterSpec {
                 ("height_mm", self.height_mm.is_some()),
                 ("half_angle_deg", self.half_angle_deg.is_some()),
                 ("size_mm", self.size_mm.is_some()),
+                ("pattern", self.pattern.is_some()),
+                ("pitch_mm", self.pitch_mm.is_some()),
+                ("depth_mm", self.depth_mm.is_some()),
+                ("crown_radius_mm", self.crown_radius_mm.is_some()),
                 ("mesh", self.mesh.is_some()),
                 ("scale", self.scale.is_some()),
                 ("units", self.units.is_some()),
@@ -657,6 +843,47 @@ impl IndenterSpec {
                     positive("size_mm", Some(v))?;
                 }
                 Indenter::Box { size_mm: s }
+            }
+            ShapeKind::Texture => {
+                unused(&[
+                    "size_mm",
+                    "pattern",
+                    "pitch_mm",
+                    "depth_mm",
+                    "crown_radius_mm",
+                ])?;
+                let pattern = self.pattern.ok_or_else(|| {
+                    SceneError::invalid(
+                        scene,
+                        "indenter.pattern",
+                        "required for shape Texture (ribs, weave, knurl or dots)",
+                    )
+                })?;
+                let size_mm = self.size_mm.unwrap_or(TexturedPlate::DEFAULT_SIZE_MM);
+                for v in size_mm {
+                    positive("size_mm", Some(v))?;
+                }
+                let plate = TexturedPlate {
+                    pattern,
+                    pitch_mm: positive("pitch_mm", self.pitch_mm)?,
+                    depth_mm: positive("depth_mm", self.depth_mm)?,
+                    size_mm,
+                    crown_radius_mm: match self.crown_radius_mm {
+                        None => None,
+                        r => Some(positive("crown_radius_mm", r)?),
+                    },
+                };
+                if size_mm[2] <= plate.depth_mm {
+                    return Err(SceneError::invalid(
+                        scene,
+                        "indenter.size_mm",
+                        format!(
+                            "the plate's height ({}) must exceed depth_mm ({})",
+                            size_mm[2], plate.depth_mm
+                        ),
+                    ));
+                }
+                Indenter::Texture(plate)
             }
             ShapeKind::Mesh => {
                 unused(&["mesh", "scale", "units", "anchor"])?;

@@ -25,7 +25,10 @@ pub use error::SceneError;
 pub use family::{DatasetSpec, MotionKind, Range, SequenceScene, Split, sequence_seed};
 pub use gap::GapField;
 pub use grid::Grid;
-pub use indenter::{Anchor, Indenter, IndenterSpec, LengthUnit, MeshIndenter, ShapeKind, TriMesh};
+pub use indenter::{
+    Anchor, Indenter, IndenterSpec, LengthUnit, MeshIndenter, Pattern, ShapeKind, TexturedPlate,
+    TriMesh,
+};
 pub use optics::{OpticsModel, OpticsSpec};
 pub use sensor::{Light, MarkerGrid, PRESETS, SensorConfig};
 pub use trajectory::{FrameTarget, Keyframe, MAX_FRAMES, Pose, sample};

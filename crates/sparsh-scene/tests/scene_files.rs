@@ -51,6 +51,61 @@ fn quickstart_parses_with_preset_defaults() {
     assert!(matches!(scene.indenter, Indenter::Sphere { radius_mm } if radius_mm == 6.0));
 }
 
+/// Every shipped scene and dataset file in `scenes/` loads (which draws the first sequence of
+/// each family), and the TacBench datasets have the shape their benchmark tasks read.
+#[test]
+fn shipped_scenes_load() {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../scenes");
+    let mut names = Vec::new();
+    for entry in std::fs::read_dir(&dir).unwrap() {
+        let path = entry.unwrap().path();
+        if path.extension().is_some_and(|e| e == "toml") {
+            sparsh_scene::DatasetSpec::load(&path)
+                .unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+            names.push(path.file_stem().unwrap().to_string_lossy().into_owned());
+        }
+    }
+    for name in [
+        "quickstart",
+        "pretrain_small",
+        "tacbench_force_slip",
+        "tacbench_pose",
+        "tacbench_texture",
+        "tacbench_grasp",
+    ] {
+        assert!(names.iter().any(|n| n == name), "scenes/{name}.toml loads");
+    }
+
+    // Texture: twelve classes, each the family name of one DIGIT and one GelSight Mini table,
+    // with held-out variants of each class in the test split.
+    let spec = sparsh_scene::DatasetSpec::load(&dir.join("tacbench_texture.toml")).unwrap();
+    assert!(spec.frame_count() <= 6000, "{} frames", spec.frame_count());
+    let mut classes: std::collections::BTreeMap<String, (Vec<String>, usize)> = Default::default();
+    for k in 0..spec.sequence_count() {
+        let seq = spec.sequence(k).unwrap();
+        assert!(matches!(seq.scene.indenter, Indenter::Texture(_)), "{k}");
+        let class = classes.entry(seq.family).or_default();
+        if !class.0.contains(&seq.scene.sensor.name) {
+            class.0.push(seq.scene.sensor.name.clone());
+        }
+        class.1 += usize::from(seq.split == sparsh_scene::Split::Test);
+    }
+    assert!(classes.len() >= 12, "{} textures", classes.len());
+    for (name, (sensors, tests)) in &classes {
+        assert_eq!(sensors, &["digit", "gelsight_mini"], "{name}");
+        assert!(*tests > 0, "{name} has test sequences");
+    }
+
+    // Grasp: one DIGIT family of press-and-drag sequences with held-out shapes.
+    let spec = sparsh_scene::DatasetSpec::load(&dir.join("tacbench_grasp.toml")).unwrap();
+    assert!((150..=250).contains(&spec.sequence_count()));
+    let splits: Vec<_> = (0..spec.sequence_count())
+        .map(|k| spec.sequence(k).unwrap().split)
+        .collect();
+    assert!(splits.contains(&sparsh_scene::Split::Test));
+    assert!(splits.contains(&sparsh_scene::Split::Train));
+}
+
 #[test]
 fn overrides_and_defaults_apply() {
     let scene = parse(BASE).unwrap();

@@ -128,31 +128,16 @@ impl ProbeSet {
         )
     }
 
-    /// Raw patches as tokens, `[samples, (height/patch)·(width/patch), frames·channels·patch²]`
-    /// row-major, the patches in row-major grid order, each patch's values in (frame,
-    /// channel, row, column) order.
+    /// Raw patches of every sample as tokens (see [`patch_tokens`]).
     fn patch_tokens(&self, patch: usize) -> (Vec<f32>, [usize; 3]) {
-        let [_, f, c, h, w] = self.batches[0].shape;
-        let (gh, gw) = (h / patch, w / patch);
-        let d = f * c * patch * patch;
         let mut tokens = Vec::new();
-        let mut n = 0;
+        let mut dims = [0, 0, 0];
         for b in &self.batches {
-            for sample in b.values.chunks(f * c * h * w) {
-                for gy in 0..gh {
-                    for gx in 0..gw {
-                        for plane in sample.chunks(h * w) {
-                            for y in gy * patch..(gy + 1) * patch {
-                                let row = &plane[y * w + gx * patch..y * w + (gx + 1) * patch];
-                                tokens.extend_from_slice(row);
-                            }
-                        }
-                    }
-                }
-                n += 1;
-            }
+            let (t, [n, k, d]) = patch_tokens(b, patch);
+            tokens.extend(t);
+            dims = [dims[0] + n, k, d];
         }
-        (tokens, [n, gh * gw, d])
+        (tokens, dims)
     }
 
     /// Fits and scores the probes on `encoder` (frozen; no gradients reach it): the ridge
@@ -204,6 +189,30 @@ impl ProbeSet {
             feature_rank: content_rank(&tokens, dims),
         }
     }
+}
+
+/// The raw input patches of a batch as tokens, `[samples, (height/patch)·(width/patch),
+/// frames·channels·patch²]` row-major: the patches in row-major grid order, each patch's values
+/// in (frame, channel, row, column) order.
+pub fn patch_tokens(batch: &HostBatch, patch: usize) -> (Vec<f32>, [usize; 3]) {
+    let [n, f, c, h, w] = batch.shape;
+    let (gh, gw) = (h / patch, w / patch);
+    let d = f * c * patch * patch;
+    let mut tokens = Vec::with_capacity(n * gh * gw * d);
+    for sample in batch.values.chunks(f * c * h * w) {
+        for gy in 0..gh {
+            for gx in 0..gw {
+                for plane in sample.chunks(h * w) {
+                    for y in gy * patch..(gy + 1) * patch {
+                        tokens.extend_from_slice(
+                            &plane[y * w + gx * patch..y * w + (gx + 1) * patch],
+                        );
+                    }
+                }
+            }
+        }
+    }
+    (tokens, [n, gh * gw, d])
 }
 
 /// Configuration of an [`AttentiveProbe`].

@@ -1,0 +1,302 @@
+//! The TacBench run description (`tacbench/NAME.toml`): tasks and their data, encoders, label
+//! budgets, seeds and baselines. Paths are relative to the config file. Unknown keys are
+//! errors, and every error names the file and the key.
+
+use std::path::{Path, PathBuf};
+
+use serde::Deserialize;
+use sparsh_ssl::recipe::Recipe;
+
+use crate::Error;
+use crate::tasks::TaskKind;
+
+/// One `[[task]]`.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TaskConfig {
+    /// `force`, `slip`, `pose`, `texture` or `grasp`.
+    pub kind: TaskKind,
+    /// The labelled dataset: a `sparsh generate` directory or an official TacBench layout.
+    pub data: PathBuf,
+    /// The scene file that generates `data` when it is missing (optional).
+    #[serde(default)]
+    pub scene: Option<PathBuf>,
+    /// Use every `frame_stride`-th frame of a sequence as a sample (default 1).
+    #[serde(default = "one")]
+    pub frame_stride: usize,
+    /// Recompute the slip task's friction-cone label as ‖F_xy‖ > ratio · F_z from the force
+    /// labels (default: the data's own `slip_cone`). A simulated gel of friction μ never
+    /// carries more than ‖F_xy‖ = μ F_z, so the official ratio 1.6 is only reached with μ > 1.6.
+    #[serde(default)]
+    pub slip_cone_ratio: Option<f64>,
+    /// Force range per axis (N) the force and ΔF heads' tanh / sigmoid are scaled by
+    /// (default DIGIT's official [4, 4, 5]).
+    #[serde(default = "digit_force_scale")]
+    pub force_scale_n: [f64; 3],
+}
+
+/// One `[[encoder]]`: pretrained weights and the recipe that trained them (architecture and
+/// frame stacking).
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct EncoderConfig {
+    /// Name in tables and charts.
+    pub name: String,
+    /// The training recipe (`assets/ssl/*.toml`).
+    pub recipe: PathBuf,
+    /// The encoder weights (safetensors, official key names).
+    pub weights: PathBuf,
+}
+
+/// One `[[random]]`: randomly initialised encoders of a recipe's architecture, each drawn as a
+/// run of the recipe with seed `k` draws its own, for k in `0..draws`.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RandomConfig {
+    /// Name prefix in tables (`NAME-k` per draw).
+    pub name: String,
+    /// The recipe whose architecture and stacking the draws share.
+    pub recipe: PathBuf,
+    /// How many draws (at least 1; TacBench runs use at least 8).
+    pub draws: usize,
+}
+
+/// `[baselines]`: the probe on raw input patches and the end-to-end model.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct BaselineConfig {
+    /// Recipe giving the architecture and stacking of both.
+    pub recipe: PathBuf,
+    /// Run the attentive probe on the raw input patches.
+    #[serde(default = "yes")]
+    pub pixel_probe: bool,
+    /// Train the recipe's ViT from scratch with the probe head on each budget's labels.
+    #[serde(default = "yes")]
+    pub end_to_end: bool,
+    /// Epochs of end-to-end training (default: the probe's).
+    #[serde(default)]
+    pub end_to_end_epochs: Option<usize>,
+    /// Peak learning rate of end-to-end training (default 3e-4).
+    #[serde(default = "e2e_lr")]
+    pub end_to_end_lr: f64,
+}
+
+/// `[probe]`: training of the attentive probe.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ProbeConfig {
+    /// Epochs (the epoch scored on test is the best on validation).
+    #[serde(default = "epochs")]
+    pub epochs: usize,
+    /// Batch size.
+    #[serde(default = "batch")]
+    pub batch_size: usize,
+    /// Peak learning rate (AdamW, half-cosine decay to 0).
+    #[serde(default = "probe_lr")]
+    pub lr: f64,
+    /// Probe seeds per (task, encoder, budget).
+    #[serde(default = "one")]
+    pub seeds: usize,
+}
+
+/// A TacBench run description.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct BenchConfig {
+    /// Seed of splits, probe draws and bootstrap.
+    #[serde(default)]
+    pub seed: u64,
+    /// Label budgets: shares of the training sequences, each in (0, 1].
+    #[serde(default = "budgets")]
+    pub budgets: Vec<f64>,
+    /// Bootstrap resamples of the test sequences for the 95 % intervals.
+    #[serde(default = "bootstrap")]
+    pub bootstrap: usize,
+    /// Probe training.
+    #[serde(default)]
+    pub probe: ProbeConfig,
+    /// The tasks.
+    #[serde(default)]
+    pub task: Vec<TaskConfig>,
+    /// Pretrained encoders.
+    #[serde(default)]
+    pub encoder: Vec<EncoderConfig>,
+    /// Random-draw baselines.
+    #[serde(default)]
+    pub random: Vec<RandomConfig>,
+    /// Pixel-probe and end-to-end baselines.
+    #[serde(default)]
+    pub baselines: Option<BaselineConfig>,
+    /// Where the config was read from (set by [`BenchConfig::load`]).
+    #[serde(skip)]
+    pub path: PathBuf,
+}
+
+impl Default for ProbeConfig {
+    fn default() -> Self {
+        Self {
+            epochs: epochs(),
+            batch_size: batch(),
+            lr: probe_lr(),
+            seeds: 1,
+        }
+    }
+}
+
+fn one() -> usize {
+    1
+}
+fn yes() -> bool {
+    true
+}
+fn digit_force_scale() -> [f64; 3] {
+    [4.0, 4.0, 5.0]
+}
+fn e2e_lr() -> f64 {
+    3e-4
+}
+fn epochs() -> usize {
+    20
+}
+fn batch() -> usize {
+    32
+}
+fn probe_lr() -> f64 {
+    1e-3
+}
+fn budgets() -> Vec<f64> {
+    vec![1.0, 0.33, 0.1, 0.01]
+}
+fn bootstrap() -> usize {
+    1000
+}
+
+impl BenchConfig {
+    /// Reads and checks `path`; relative paths inside become relative to its directory.
+    pub fn load(path: &Path) -> Result<Self, Error> {
+        let text = std::fs::read_to_string(path).map_err(|e| Error::file(path, e))?;
+        let mut cfg: BenchConfig = toml::from_str(&text).map_err(|e| {
+            let msg = e.message().to_string();
+            match e.span() {
+                Some(span) => {
+                    let line = text[..span.start].lines().count().max(1);
+                    Error::file(path, format!("line {line}: {msg}"))
+                }
+                None => Error::file(path, msg),
+            }
+        })?;
+        cfg.path = path.to_path_buf();
+        let base = path.parent().unwrap_or(Path::new("")).to_path_buf();
+        let rel = |p: &mut PathBuf| {
+            if p.is_relative() {
+                *p = base.join(&*p);
+            }
+        };
+        for t in &mut cfg.task {
+            rel(&mut t.data);
+            if let Some(s) = &mut t.scene {
+                rel(s);
+            }
+        }
+        for e in &mut cfg.encoder {
+            rel(&mut e.recipe);
+            rel(&mut e.weights);
+        }
+        for r in &mut cfg.random {
+            rel(&mut r.recipe);
+        }
+        if let Some(b) = &mut cfg.baselines {
+            rel(&mut b.recipe);
+        }
+        cfg.check()?;
+        Ok(cfg)
+    }
+
+    fn check(&self) -> Result<(), Error> {
+        let bad = |field: &str, msg: String| Err(Error::config(&self.path, field, msg));
+        if self.budgets.is_empty() {
+            return bad("budgets", "give at least one label budget".into());
+        }
+        for &b in &self.budgets {
+            if !(b > 0.0 && b <= 1.0) {
+                return bad(
+                    "budgets",
+                    format!(
+                        "a label budget is a share of the training sequences in (0, 1], got {b}"
+                    ),
+                );
+            }
+        }
+        if self.task.is_empty() {
+            return bad("task", "no [[task]] given".into());
+        }
+        for (i, t) in self.task.iter().enumerate() {
+            if t.frame_stride == 0 {
+                return bad(
+                    &format!("task[{i}].frame_stride"),
+                    "must be at least 1".into(),
+                );
+            }
+            if let Some(r) = t.slip_cone_ratio
+                && !(r.is_finite() && r > 0.0)
+            {
+                return bad(
+                    &format!("task[{i}].slip_cone_ratio"),
+                    format!("must be positive, got {r}"),
+                );
+            }
+            if t.force_scale_n.iter().any(|s| !(s.is_finite() && *s > 0.0)) {
+                return bad(
+                    &format!("task[{i}].force_scale_n"),
+                    format!(
+                        "every axis's range must be positive, got {:?}",
+                        t.force_scale_n
+                    ),
+                );
+            }
+        }
+        if self.probe.epochs == 0 || self.probe.batch_size == 0 || self.probe.seeds == 0 {
+            return bad(
+                "probe",
+                "epochs, batch_size and seeds must be at least 1".into(),
+            );
+        }
+        if !(self.probe.lr.is_finite() && self.probe.lr > 0.0) {
+            return bad(
+                "probe.lr",
+                format!("must be positive, got {}", self.probe.lr),
+            );
+        }
+        let mut names = std::collections::BTreeSet::new();
+        for e in &self.encoder {
+            if !names.insert(e.name.clone()) {
+                return bad("encoder.name", format!("`{}` is used twice", e.name));
+            }
+        }
+        for r in &self.random {
+            if r.draws == 0 {
+                return bad("random.draws", format!("`{}` draws no encoder", r.name));
+            }
+            if !names.insert(r.name.clone()) {
+                return bad("random.name", format!("`{}` is used twice", r.name));
+            }
+        }
+        if let Some(b) = &self.baselines
+            && !(b.end_to_end_lr.is_finite() && b.end_to_end_lr > 0.0)
+        {
+            return bad(
+                "baselines.end_to_end_lr",
+                format!("must be positive, got {}", b.end_to_end_lr),
+            );
+        }
+        if self.bootstrap == 0 {
+            return bad("bootstrap", "must be at least 1".into());
+        }
+        Ok(())
+    }
+
+    /// Loads a recipe named by this config, naming the config key on failure.
+    pub fn recipe(&self, path: &Path, field: &str) -> Result<Recipe, Error> {
+        Recipe::load(path).map_err(|e| Error::config(&self.path, field, e))
+    }
+}

@@ -1,0 +1,269 @@
+//! Training a task head on an encoder: the attentive probe on frozen tokens, or the same head
+//! on a ViT trained with it from scratch (the end-to-end baseline). The epoch scored on the
+//! test split is the one best on the validation split — never chosen on test, the defect of the
+//! official notebook.
+
+use burn::module::Module;
+use burn::optim::{AdamWConfig, GradientsParams};
+use burn::prelude::*;
+use sparsh_ssl::data::HostBatch;
+use sparsh_ssl::probe::{AttentiveProbe, AttentiveProbeConfig};
+use sparsh_ssl::rng::Rng;
+use sparsh_ssl::train::seeded_module;
+use sparsh_ssl::vit::Vit;
+
+use crate::tasks::{Head, Metric, Sample, score};
+
+/// Rows (indices into the task's samples) of the three splits.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Split {
+    /// Labelled training rows (the budget's share).
+    pub train: Vec<usize>,
+    /// Validation rows: the epoch is chosen on them.
+    pub val: Vec<usize>,
+    /// Test rows: scored once, with the chosen epoch.
+    pub test: Vec<usize>,
+}
+
+/// Training settings.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FitOptions {
+    /// Passes over the training rows.
+    pub epochs: usize,
+    /// Batch size.
+    pub batch_size: usize,
+    /// Peak learning rate (AdamW, weight decay 0.01, half-cosine decay to 0).
+    pub lr: f64,
+    /// Seed of the head's initial draw and of the batch order.
+    pub seed: u64,
+}
+
+/// The outcome of one training.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Fit {
+    /// Epoch (from 1) whose model was scored on test.
+    pub best_epoch: usize,
+    /// The validation metric after each epoch.
+    pub val_curve: Vec<f64>,
+    /// Decoded predictions for the test rows, in their order.
+    pub test_preds: Vec<Vec<f64>>,
+}
+
+/// Frozen tokens of every sample, `[samples, tokens, dim]` row-major.
+#[derive(Debug, Clone)]
+pub struct Tokens {
+    /// Values.
+    pub values: Vec<f32>,
+    /// `[samples, tokens, dim]`.
+    pub dims: [usize; 3],
+}
+
+impl Tokens {
+    /// Standardizes every (token, feature) with its mean and standard deviation over the rows
+    /// `pool` (the training split's samples: their images, not their labels, so every budget
+    /// shares the statistics).
+    pub fn standardize(&mut self, pool: &[usize]) {
+        let [_, t, d] = self.dims;
+        let row = t * d;
+        let n = pool.len().max(1) as f64;
+        let mut mean = vec![0.0f64; row];
+        let mut var = vec![0.0f64; row];
+        for &i in pool {
+            for (m, &v) in mean.iter_mut().zip(&self.values[i * row..(i + 1) * row]) {
+                *m += v as f64 / n;
+            }
+        }
+        for &i in pool {
+            for ((s, &v), &m) in var
+                .iter_mut()
+                .zip(&self.values[i * row..(i + 1) * row])
+                .zip(&mean)
+            {
+                *s += (v as f64 - m).powi(2) / n;
+            }
+        }
+        let scale: Vec<f64> = var.iter().map(|v| 1.0 / v.sqrt().max(1e-6)).collect();
+        for sample in self.values.chunks_mut(row) {
+            for ((v, &m), &s) in sample.iter_mut().zip(&mean).zip(&scale) {
+                *v = ((*v as f64 - m) * s) as f32;
+            }
+        }
+    }
+}
+
+/// The input of a model for some rows, on a device.
+type Input<'a> = dyn Fn(&[usize], &Device) -> Tensor<3> + Sync + 'a;
+
+/// Trains the attentive probe (Sparsh's TacBench head, [`AttentiveProbe`]) on frozen `tokens`.
+pub fn fit_frozen(
+    tokens: &Tokens,
+    samples: &[Sample],
+    head: &Head,
+    classes: usize,
+    split: &Split,
+    opts: FitOptions,
+) -> Fit {
+    let [_, t, d] = tokens.dims;
+    let input = |rows: &[usize], device: &Device| {
+        let x: Vec<f32> = rows
+            .iter()
+            .flat_map(|&i| tokens.values[i * t * d..(i + 1) * t * d].iter().copied())
+            .collect();
+        Tensor::<1>::from_floats(x.as_slice(), device).reshape([rows.len(), t, d])
+    };
+    let device = Device::flex().autodiff();
+    let probe = seeded_module(&device, opts.seed, || {
+        AttentiveProbeConfig::new(d, heads_for(d))
+            .with_outputs(head.outputs(classes))
+            .init(&device)
+    });
+    fit(
+        probe,
+        &input,
+        &|m: &AttentiveProbe, x| m.forward(x),
+        samples,
+        head,
+        classes,
+        split,
+        opts,
+    )
+}
+
+/// The encoder and the probe head trained together.
+#[derive(Module, Debug)]
+pub struct EndToEnd {
+    /// The ViT.
+    pub encoder: Vit,
+    /// The attentive probe on its tokens.
+    pub head: AttentiveProbe,
+}
+
+/// Trains `encoder` (a fresh draw) together with the attentive probe on the images of the
+/// training rows: the end-to-end baseline of the same capacity. `images` assembles the
+/// unaugmented input batch of some rows.
+pub fn fit_end_to_end(
+    encoder: Vit,
+    images: &(dyn Fn(&[usize]) -> HostBatch + Sync),
+    samples: &[Sample],
+    head: &Head,
+    classes: usize,
+    split: &Split,
+    opts: FitOptions,
+) -> Fit {
+    let device = Device::flex().autodiff();
+    let d = encoder.dim();
+    let probe = seeded_module(&device, opts.seed, || {
+        AttentiveProbeConfig::new(d, heads_for(d))
+            .with_outputs(head.outputs(classes))
+            .init(&device)
+    });
+    let model = EndToEnd {
+        encoder,
+        head: probe,
+    };
+    // the images stay 5-D: pass them flattened through the 3-D input and reshape inside
+    let shape = images(&split.train[..1]).shape;
+    let input = |rows: &[usize], device: &Device| {
+        let b = images(rows);
+        Tensor::<1>::from_floats(b.values.as_slice(), device).reshape([
+            rows.len(),
+            1,
+            b.values.len() / rows.len(),
+        ])
+    };
+    let forward = move |m: &EndToEnd, x: Tensor<3>| {
+        let [n, _, _] = x.dims();
+        let [_, f, c, h, w] = shape;
+        let tokens = m.encoder.forward(x.reshape([n, f, c, h, w]), None).patches;
+        m.head.forward(tokens)
+    };
+    fit(model, &input, &forward, samples, head, classes, split, opts)
+}
+
+/// Heads of the probe's attention: one per 64 features (12 for ViT-base as the official
+/// probe), else one.
+fn heads_for(d: usize) -> usize {
+    if d.is_multiple_of(64) { d / 64 } else { 1 }
+}
+
+/// The training loop both fits share.
+#[allow(clippy::too_many_arguments)]
+fn fit<M: Module + Clone>(
+    mut model: M,
+    input: &Input<'_>,
+    forward: &(dyn Fn(&M, Tensor<3>) -> Tensor<2> + Sync),
+    samples: &[Sample],
+    head: &Head,
+    classes: usize,
+    split: &Split,
+    opts: FitOptions,
+) -> Fit {
+    let device = Device::flex().autodiff();
+    let width = head.target_width(classes);
+    let targets = |rows: &[usize]| {
+        let t: Vec<f32> = rows
+            .iter()
+            .flat_map(|&i| head.encode(&samples[i].target, classes))
+            .collect();
+        Tensor::<1>::from_floats(t.as_slice(), &device).reshape([rows.len(), width])
+    };
+    let metric: Metric = head.kind.metrics()[0];
+    let predict = |m: &M, rows: &[usize]| -> Vec<Vec<f64>> {
+        let plain = Device::flex();
+        let valid = m.valid();
+        let mut out = Vec::with_capacity(rows.len());
+        for chunk in rows.chunks(64) {
+            let y = forward(&valid, input(chunk, &plain))
+                .into_data()
+                .convert::<f32>()
+                .try_into_vec::<f32>()
+                .expect("f32 outputs");
+            let k = y.len() / chunk.len();
+            out.extend(y.chunks(k).map(|r| head.decode(r)));
+        }
+        out
+    };
+    let mut optim = AdamWConfig::new().with_weight_decay(0.01).init();
+    let steps_per_epoch = split.train.len().div_ceil(opts.batch_size).max(1);
+    let total = (opts.epochs * steps_per_epoch) as f64;
+    let mut step = 0usize;
+    let mut best: Option<(f64, usize, M)> = None;
+    let mut val_curve = Vec::with_capacity(opts.epochs);
+    let mut all_preds = vec![Vec::new(); samples.len()];
+    for epoch in 0..opts.epochs {
+        let order = Rng::for_step(opts.seed, epoch as u64, 7).permutation(split.train.len());
+        for chunk in order.chunks(opts.batch_size) {
+            let rows: Vec<usize> = chunk.iter().map(|&k| split.train[k]).collect();
+            let loss = head.loss(forward(&model, input(&rows, &device)), targets(&rows));
+            let grads = GradientsParams::from_grads(loss.backward(), &model);
+            let lr = 0.5 * opts.lr * (1.0 + (std::f64::consts::PI * step as f64 / total).cos());
+            model = optim.step(lr, model, grads);
+            step += 1;
+        }
+        let preds = predict(&model, &split.val);
+        for (&i, p) in split.val.iter().zip(preds) {
+            all_preds[i] = p;
+        }
+        let value = score(metric, &split.val, &all_preds, samples);
+        val_curve.push(value);
+        let better = match &best {
+            None => true,
+            Some((b, _, _)) => {
+                if metric.higher_is_better() {
+                    value > *b
+                } else {
+                    value < *b
+                }
+            }
+        };
+        if better {
+            best = Some((value, epoch + 1, model.clone()));
+        }
+    }
+    let (_, best_epoch, chosen) = best.expect("at least one epoch");
+    Fit {
+        best_epoch,
+        val_curve,
+        test_preds: predict(&chosen, &split.test),
+    }
+}

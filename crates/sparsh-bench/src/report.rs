@@ -1,0 +1,580 @@
+//! The report of a run: `results.csv` (one row per task, encoder, budget and metric), the
+//! Markdown table `results.md`, and one label-budget chart per task (`budget_TASK.png` and
+//! `.svg`: the task's first metric against the budget, one line per encoder, 95 % bootstrap
+//! bands over test sequences; the random draws as their mean with their min–max band).
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::path::Path;
+
+use plotters::prelude::*;
+use plotters::style::FontStyle;
+use rayon::prelude::*;
+
+use crate::Error;
+use crate::run::{EncoderKind, TaskRun, Unit};
+use crate::stats::{Spread, bootstrap_interval, rank};
+use crate::tasks::{Metric, Target, TaskKind, score};
+
+const FONT: &[u8] = include_bytes!("../../../assets/fonts/DejaVuSans.ttf");
+const SANS: &str = "sans-serif";
+
+/// One row of `results.csv`.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct Row {
+    /// Task.
+    pub task: String,
+    /// Encoder (a random group's summary row is `GROUP (K draws)`).
+    pub encoder: String,
+    /// `pretrained`, `random`, `random_draws`, `pixels`, `end_to_end` or `constant`.
+    pub kind: String,
+    /// Label budget (share of training sequences).
+    pub budget: f64,
+    /// Metric name.
+    pub metric: String,
+    /// Mean over probe seeds (over draws for a summary row).
+    pub value: f64,
+    /// Probe seeds averaged.
+    pub seeds: usize,
+    /// 95 % bootstrap interval over test sequences (empty for summary rows).
+    pub ci_low: Option<f64>,
+    /// Upper end of the interval.
+    pub ci_high: Option<f64>,
+    /// Summary rows: standard deviation, minimum and maximum over the draws.
+    pub draws_sd: Option<f64>,
+    /// Smallest draw.
+    pub draws_min: Option<f64>,
+    /// Largest draw.
+    pub draws_max: Option<f64>,
+    /// Pretrained rows: rank among the random draws of the same architecture (1 = best).
+    pub rank: Option<usize>,
+    /// Out of how many (the draws and the encoder).
+    pub rank_of: Option<usize>,
+    /// Labelled training sequences.
+    pub train_sequences: usize,
+    /// Labelled training samples.
+    pub train_samples: usize,
+    /// Test samples.
+    pub test_samples: usize,
+}
+
+fn kind_name(k: EncoderKind) -> &'static str {
+    match k {
+        EncoderKind::Pretrained => "pretrained",
+        EncoderKind::Random => "random",
+        EncoderKind::Pixels => "pixels",
+        EncoderKind::EndToEnd => "end_to_end",
+    }
+}
+
+/// Predictions of the constant predictor fitted on `train` rows: the mean force, the majority
+/// class of each head (what a model that learns nothing from the frames scores).
+pub fn constant_predictions(tr: &TaskRun, train: &[usize]) -> Vec<Vec<f64>> {
+    let samples = &tr.samples.samples;
+    let majority = |f: &dyn Fn(&Target) -> usize, n: usize| -> f64 {
+        let mut counts = vec![0usize; n];
+        for &i in train {
+            counts[f(&samples[i].target)] += 1;
+        }
+        (0..n)
+            .max_by_key(|&c| (counts[c], usize::MAX - c))
+            .unwrap_or(0) as f64
+    };
+    let pred: Vec<f64> = match tr.samples.kind {
+        TaskKind::Force => {
+            let mut m = vec![0.0; 3];
+            for &i in train {
+                if let Target::Force(f) = samples[i].target {
+                    (0..3).for_each(|k| m[k] += f[k] / train.len() as f64);
+                }
+            }
+            m
+        }
+        TaskKind::Slip => vec![
+            majority(
+                &|t| matches!(t, Target::Slip { cone: true, .. }) as usize,
+                2,
+            ),
+            majority(
+                &|t| match t {
+                    Target::Slip { state, .. } => state.unwrap_or(0),
+                    _ => 0,
+                },
+                3,
+            ),
+        ],
+        TaskKind::Pose => (0..3)
+            .map(|h| {
+                let edges: &[f64] = if h == 2 {
+                    &crate::tasks::POSE_EDGES_DEG
+                } else {
+                    &crate::tasks::POSE_EDGES_MM
+                };
+                majority(
+                    &|t| match t {
+                        Target::Pose(p) => crate::tasks::bin_of(p[h], edges),
+                        _ => 0,
+                    },
+                    11,
+                )
+            })
+            .collect(),
+        TaskKind::Texture | TaskKind::Grasp => vec![majority(
+            &|t| match t {
+                Target::Class(c) => *c,
+                _ => 0,
+            },
+            tr.samples.classes.len().max(1),
+        )],
+    };
+    vec![pred; samples.len()]
+}
+
+/// Builds the rows of the report from the task runs and units.
+pub fn rows(
+    runs: &BTreeMap<TaskKind, TaskRun>,
+    units: &[Unit],
+    budgets: &[f64],
+    draws: usize,
+    seed: u64,
+) -> Vec<Row> {
+    let mut rows = Vec::new();
+    for (&task, tr) in runs {
+        let samples = &tr.samples.samples;
+        let groups = tr.test_groups();
+        let groups = &groups;
+        let of_task: Vec<&Unit> = units.iter().filter(|u| u.task == task).collect();
+        // (encoder, budget) → units over seeds
+        let mut cells: BTreeMap<(String, u64), Vec<&Unit>> = BTreeMap::new();
+        for u in &of_task {
+            cells
+                .entry((u.encoder.clone(), u.budget.to_bits()))
+                .or_default()
+                .push(u);
+        }
+        let full = |u: &Unit| -> Vec<Vec<f64>> {
+            let mut p = vec![Vec::new(); samples.len()];
+            for (&i, v) in tr.test.iter().zip(&u.test_preds) {
+                p[i] = v.clone();
+            }
+            p
+        };
+        let computed: Vec<Row> = cells
+            .par_iter()
+            .flat_map_iter(|((name, bits), us)| {
+                let preds: Vec<Vec<Vec<f64>>> = us.iter().map(|u| full(u)).collect();
+                let first = us[0];
+                task.metrics()
+                    .iter()
+                    .map(move |&m| {
+                        let value =
+                            us.iter().map(|u| u.metrics[m.name()]).sum::<f64>() / us.len() as f64;
+                        let stat = |k: &[usize]| {
+                            let rows: Vec<usize> = k.iter().map(|&j| tr.test[j]).collect();
+                            preds
+                                .iter()
+                                .map(|p| score(m, &rows, p, samples))
+                                .sum::<f64>()
+                                / preds.len() as f64
+                        };
+                        let (lo, hi) = bootstrap_interval(groups, draws, seed, stat);
+                        Row {
+                            task: task.name().into(),
+                            encoder: name.clone(),
+                            kind: kind_name(first.kind).into(),
+                            budget: f64::from_bits(*bits),
+                            metric: m.name().into(),
+                            value,
+                            seeds: us.len(),
+                            ci_low: Some(lo),
+                            ci_high: Some(hi),
+                            draws_sd: None,
+                            draws_min: None,
+                            draws_max: None,
+                            rank: None,
+                            rank_of: None,
+                            train_sequences: first.train_sequences,
+                            train_samples: first.train_samples,
+                            test_samples: tr.test.len(),
+                        }
+                    })
+                    .collect::<Vec<_>>()
+            })
+            .collect();
+        // the constant predictor per budget
+        for &budget in budgets {
+            let seqs = tr.budget_sequences(budget);
+            let train = tr.rows(&seqs);
+            let preds = constant_predictions(tr, &train);
+            for &m in task.metrics() {
+                let stat = |k: &[usize]| {
+                    let rows: Vec<usize> = k.iter().map(|&j| tr.test[j]).collect();
+                    score(m, &rows, &preds, samples)
+                };
+                let (lo, hi) = bootstrap_interval(groups, draws, seed, stat);
+                rows.push(Row {
+                    task: task.name().into(),
+                    encoder: "constant".into(),
+                    kind: "constant".into(),
+                    budget,
+                    metric: m.name().into(),
+                    value: score(m, &tr.test, &preds, samples),
+                    seeds: 1,
+                    ci_low: Some(lo),
+                    ci_high: Some(hi),
+                    draws_sd: None,
+                    draws_min: None,
+                    draws_max: None,
+                    rank: None,
+                    rank_of: None,
+                    train_sequences: seqs.len(),
+                    train_samples: train.len(),
+                    test_samples: tr.test.len(),
+                });
+            }
+        }
+        // random-draw summaries and ranks
+        let group_of: BTreeMap<String, Option<String>> = of_task
+            .iter()
+            .map(|u| (u.encoder.clone(), u.group.clone()))
+            .collect();
+        let kind_of: BTreeMap<String, EncoderKind> = of_task
+            .iter()
+            .map(|u| (u.encoder.clone(), u.kind))
+            .collect();
+        let mut with_ranks = computed.clone();
+        let groups_present: BTreeSet<String> = of_task
+            .iter()
+            .filter(|u| u.kind == EncoderKind::Random)
+            .filter_map(|u| u.group.clone())
+            .collect();
+        for g in &groups_present {
+            for &budget in budgets {
+                for &m in task.metrics() {
+                    let draws_rows: Vec<&Row> = computed
+                        .iter()
+                        .filter(|r| {
+                            r.budget == budget
+                                && r.metric == m.name()
+                                && kind_of.get(&r.encoder) == Some(&EncoderKind::Random)
+                                && group_of.get(&r.encoder).cloned().flatten().as_deref() == Some(g)
+                        })
+                        .collect();
+                    if draws_rows.is_empty() {
+                        continue;
+                    }
+                    let values: Vec<f64> = draws_rows.iter().map(|r| r.value).collect();
+                    let s = Spread::of(&values);
+                    rows.push(Row {
+                        task: task.name().into(),
+                        encoder: format!("{g} ({} draws)", values.len()),
+                        kind: "random_draws".into(),
+                        budget,
+                        metric: m.name().into(),
+                        value: s.mean,
+                        seeds: draws_rows[0].seeds,
+                        ci_low: None,
+                        ci_high: None,
+                        draws_sd: Some(s.sd),
+                        draws_min: Some(s.min),
+                        draws_max: Some(s.max),
+                        rank: None,
+                        rank_of: None,
+                        train_sequences: draws_rows[0].train_sequences,
+                        train_samples: draws_rows[0].train_samples,
+                        test_samples: tr.test.len(),
+                    });
+                    for r in with_ranks.iter_mut().filter(|r| {
+                        r.budget == budget
+                            && r.metric == m.name()
+                            && kind_of.get(&r.encoder) == Some(&EncoderKind::Pretrained)
+                            && group_of.get(&r.encoder).cloned().flatten().as_deref() == Some(g)
+                    }) {
+                        r.rank = Some(rank(r.value, &values, m.higher_is_better()));
+                        r.rank_of = Some(values.len() + 1);
+                    }
+                }
+            }
+        }
+        rows.extend(with_ranks);
+    }
+    let order = |k: &str| match k {
+        "pretrained" => 0,
+        "random_draws" => 1,
+        "pixels" => 2,
+        "end_to_end" => 3,
+        "constant" => 4,
+        _ => 5,
+    };
+    rows.sort_by(|a, b| {
+        (&a.task, order(&a.kind), &a.encoder, &a.metric)
+            .cmp(&(&b.task, order(&b.kind), &b.encoder, &b.metric))
+            .then(b.budget.total_cmp(&a.budget))
+    });
+    rows
+}
+
+/// Writes `results.csv` (RFC 4180, header row first), `results.md` and the charts into `out`.
+pub fn write(out: &Path, rows: &[Row], budgets: &[f64]) -> Result<(), Error> {
+    let mut w = csv::Writer::from_writer(Vec::new());
+    for r in rows {
+        w.serialize(r)
+            .map_err(|e| Error::file(out.join("results.csv"), e))?;
+    }
+    let bytes = w
+        .into_inner()
+        .map_err(|e| Error::file(out.join("results.csv"), e))?;
+    sparsh_data::write_atomic(&out.join("results.csv"), &bytes)
+        .map_err(|e| Error::file(out.join("results.csv"), e))?;
+    let md = markdown(rows, budgets);
+    sparsh_data::write_atomic(&out.join("results.md"), md.as_bytes())
+        .map_err(|e| Error::file(out.join("results.md"), e))?;
+    plotters::style::register_font(SANS, FontStyle::Normal, FONT)
+        .map_err(|_| Error::file("assets/fonts/DejaVuSans.ttf", "not a usable font"))?;
+    let tasks: BTreeSet<&str> = rows.iter().map(|r| r.task.as_str()).collect();
+    for task in tasks {
+        chart(out, task, rows)?;
+    }
+    Ok(())
+}
+
+/// The first metric of a task by name.
+fn primary(task: &str) -> Metric {
+    let kind: TaskKind = serde_json::from_value(serde_json::Value::String(task.into()))
+        .expect("task names round-trip");
+    kind.metrics()[0]
+}
+
+/// The Markdown table: per task, its first metric per encoder and budget.
+pub fn markdown(rows: &[Row], budgets: &[f64]) -> String {
+    let mut s = String::new();
+    let tasks: Vec<&str> = {
+        let mut t: Vec<&str> = rows.iter().map(|r| r.task.as_str()).collect();
+        t.dedup();
+        t
+    };
+    for task in tasks {
+        let m = primary(task);
+        let arrow = if m.higher_is_better() {
+            "higher is better"
+        } else {
+            "lower is better"
+        };
+        s += &format!(
+            "\n**{task}** — {} ({arrow}); 95 % bootstrap interval over test sequences; pretrained encoders ranked among the random draws of their architecture\n\n",
+            m.name()
+        );
+        s += "| encoder |";
+        for b in budgets {
+            s += &format!(" budget {b} |");
+        }
+        s += "\n|---|";
+        s += &"---|".repeat(budgets.len());
+        s += "\n";
+        let mut names: Vec<(&str, &str)> = rows
+            .iter()
+            .filter(|r| r.task == task && r.metric == m.name() && r.kind != "random")
+            .map(|r| (r.encoder.as_str(), r.kind.as_str()))
+            .collect();
+        names.dedup();
+        for (name, kind) in names {
+            s += &format!("| {name} |");
+            for &b in budgets {
+                let cell = rows.iter().find(|r| {
+                    r.task == task && r.metric == m.name() && r.encoder == name && r.budget == b
+                });
+                s += &match cell {
+                    None => " – |".to_string(),
+                    Some(r) if kind == "random_draws" => format!(
+                        " {} ± {} [{}–{}] |",
+                        fmt(r.value),
+                        fmt(r.draws_sd.unwrap_or(0.0)),
+                        fmt(r.draws_min.unwrap_or(f64::NAN)),
+                        fmt(r.draws_max.unwrap_or(f64::NAN))
+                    ),
+                    Some(r) => {
+                        let rank = match (r.rank, r.rank_of) {
+                            (Some(k), Some(n)) => format!(", rank {k}/{n}"),
+                            _ => String::new(),
+                        };
+                        format!(
+                            " {} [{}, {}]{rank} |",
+                            fmt(r.value),
+                            fmt(r.ci_low.unwrap_or(f64::NAN)),
+                            fmt(r.ci_high.unwrap_or(f64::NAN))
+                        )
+                    }
+                };
+            }
+            s += "\n";
+        }
+    }
+    s
+}
+
+/// Three significant digits, at most one decimal above 100.
+fn fmt(v: f64) -> String {
+    if !v.is_finite() {
+        "–".into()
+    } else if v.abs() >= 100.0 {
+        format!("{v:.1}")
+    } else if v.abs() >= 1.0 {
+        format!("{v:.2}")
+    } else {
+        format!("{v:.3}")
+    }
+}
+
+fn color(i: usize) -> RGBColor {
+    const PALETTE: [RGBColor; 8] = [
+        RGBColor(0, 114, 178),
+        RGBColor(213, 94, 0),
+        RGBColor(0, 158, 115),
+        RGBColor(204, 121, 167),
+        RGBColor(230, 159, 0),
+        RGBColor(86, 180, 233),
+        RGBColor(120, 120, 120),
+        RGBColor(0, 0, 0),
+    ];
+    PALETTE[i % PALETTE.len()]
+}
+
+/// One line of a chart: encoder name, row kind, and (budget, value, band low, band high).
+type Line = (String, String, Vec<(f64, f64, f64, f64)>);
+
+fn chart_err(e: impl std::fmt::Display) -> Error {
+    Error::file("chart", e)
+}
+
+/// `budget_TASK.png` and `.svg`.
+fn chart(out: &Path, task: &str, rows: &[Row]) -> Result<(), Error> {
+    let m = primary(task);
+    let lines: Vec<Line> = {
+        let mut names: Vec<(String, String)> = rows
+            .iter()
+            .filter(|r| r.task == task && r.metric == m.name() && r.kind != "random")
+            .map(|r| (r.encoder.clone(), r.kind.clone()))
+            .collect();
+        names.dedup();
+        names
+            .into_iter()
+            .map(|(name, kind)| {
+                let mut pts: Vec<(f64, f64, f64, f64)> = rows
+                    .iter()
+                    .filter(|r| r.task == task && r.metric == m.name() && r.encoder == name)
+                    .map(|r| {
+                        let (lo, hi) = if kind == "random_draws" {
+                            (
+                                r.draws_min.unwrap_or(r.value),
+                                r.draws_max.unwrap_or(r.value),
+                            )
+                        } else {
+                            (r.ci_low.unwrap_or(r.value), r.ci_high.unwrap_or(r.value))
+                        };
+                        (r.budget, r.value, lo, hi)
+                    })
+                    .collect();
+                pts.sort_by(|a, b| a.0.total_cmp(&b.0));
+                (name, kind, pts)
+            })
+            .collect()
+    };
+    let all = lines.iter().flat_map(|l| l.2.iter());
+    let (mut y0, mut y1) = all.fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), p| {
+        (a.min(p.2).min(p.1), b.max(p.3).max(p.1))
+    });
+    if !(y0.is_finite() && y1.is_finite()) {
+        return Ok(());
+    }
+    let pad = 0.05 * (y1 - y0).max(1e-9);
+    (y0, y1) = (y0 - pad, y1 + pad);
+    let (x0, x1) = lines
+        .iter()
+        .flat_map(|l| l.2.iter().map(|p| p.0))
+        .fold((f64::INFINITY, 0.0f64), |(a, b), x| (a.min(x), b.max(x)));
+    let (w, h) = (1000u32, 680u32);
+    let mut rgb = vec![0u8; (w * h * 3) as usize];
+    draw_chart(
+        BitMapBackend::with_buffer(&mut rgb, (w, h)).into_drawing_area(),
+        task,
+        m,
+        &lines,
+        (x0, x1, y0, y1),
+    )?;
+    let img = image::RgbImage::from_raw(w, h, rgb).ok_or_else(|| chart_err("buffer size"))?;
+    let png = sparsh_data::encode_png(&img).map_err(chart_err)?;
+    let stem = out.join(format!("budget_{task}"));
+    sparsh_data::write_atomic(&stem.with_extension("png"), &png)
+        .map_err(|e| Error::file(&stem, e))?;
+    let mut svg = String::new();
+    draw_chart(
+        SVGBackend::with_string(&mut svg, (w, h)).into_drawing_area(),
+        task,
+        m,
+        &lines,
+        (x0, x1, y0, y1),
+    )?;
+    sparsh_data::write_atomic(&stem.with_extension("svg"), svg.as_bytes())
+        .map_err(|e| Error::file(&stem, e))
+}
+
+fn draw_chart<DB: DrawingBackend>(
+    area: DrawingArea<DB, plotters::coord::Shift>,
+    task: &str,
+    m: Metric,
+    lines: &[Line],
+    (x0, x1, y0, y1): (f64, f64, f64, f64),
+) -> Result<(), Error> {
+    area.fill(&WHITE).map_err(chart_err)?;
+    let mut c = ChartBuilder::on(&area)
+        .caption(
+            format!("TacBench {task}: {} against label budget", m.name()),
+            (SANS, 22),
+        )
+        .margin(14)
+        .x_label_area_size(50)
+        .y_label_area_size(80)
+        .build_cartesian_2d(((x0 / 1.5)..(x1 * 1.5)).log_scale(), y0..y1)
+        .map_err(chart_err)?;
+    c.configure_mesh()
+        .x_desc("label budget (share of training sequences)")
+        .y_desc(m.name())
+        .label_style((SANS, 15))
+        .axis_desc_style((SANS, 17))
+        .x_label_formatter(&|v| format!("{v}"))
+        .draw()
+        .map_err(chart_err)?;
+    for (i, (name, kind, pts)) in lines.iter().enumerate() {
+        let col = color(i);
+        let mut band: Vec<(f64, f64)> = pts.iter().map(|p| (p.0, p.3)).collect();
+        band.extend(pts.iter().rev().map(|p| (p.0, p.2)));
+        c.draw_series(std::iter::once(Polygon::new(band, col.mix(0.15).filled())))
+            .map_err(chart_err)?;
+        let style = if kind == "constant" {
+            col.stroke_width(1)
+        } else {
+            col.stroke_width(3)
+        };
+        c.draw_series(LineSeries::new(pts.iter().map(|p| (p.0, p.1)), style))
+            .map_err(chart_err)?
+            .label(if kind == "random_draws" {
+                format!("{name}: mean, min–max band")
+            } else {
+                name.clone()
+            })
+            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 24, y)], col.stroke_width(3)));
+        c.draw_series(pts.iter().map(|p| Circle::new((p.0, p.1), 4, col.filled())))
+            .map_err(chart_err)?;
+    }
+    c.configure_series_labels()
+        .position(if m.higher_is_better() {
+            SeriesLabelPosition::LowerRight
+        } else {
+            SeriesLabelPosition::UpperRight
+        })
+        .label_font((SANS, 15))
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .draw()
+        .map_err(chart_err)?;
+    area.present().map_err(chart_err)
+}

@@ -1,0 +1,645 @@
+//! The benchmark loop: for each task × encoder × label budget × probe seed, fit the head with
+//! the epoch chosen on validation, score it on the held-out test sequences, and record the
+//! unit on disk so an interrupted run resumes where it stopped.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use burn::prelude::*;
+use serde::{Deserialize, Serialize};
+use sparsh_ssl::data::{AugmentConfig, HostBatch, Sampler, Stacking};
+use sparsh_ssl::recipe::Recipe;
+use sparsh_ssl::train::Trainee;
+use sparsh_ssl::vit::{Vit, VitConfig};
+
+use crate::config::BenchConfig;
+use crate::labels::LabelledData;
+use crate::probe::{Fit, FitOptions, Split, Tokens, fit_end_to_end, fit_frozen};
+use crate::tasks::{Head, TaskKind, TaskSamples, extract, score};
+use crate::{Error, labels};
+
+/// What an encoder row of the results is.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, PartialOrd, Ord)]
+#[serde(rename_all = "snake_case")]
+pub enum EncoderKind {
+    /// Pretrained weights.
+    Pretrained,
+    /// A randomly initialised encoder.
+    Random,
+    /// The attentive probe on the raw input patches.
+    Pixels,
+    /// The ViT trained from scratch with the head on the budget's labels.
+    EndToEnd,
+}
+
+/// One finished (task, encoder, budget, seed): what the report is made from.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Unit {
+    /// Task.
+    pub task: TaskKind,
+    /// Encoder name.
+    pub encoder: String,
+    /// What the encoder is.
+    pub kind: EncoderKind,
+    /// For random draws: the `[[random]]` group; for pretrained encoders: the group of the same
+    /// architecture they are ranked in, if any.
+    pub group: Option<String>,
+    /// Label budget.
+    pub budget: f64,
+    /// Probe seed.
+    pub seed: u64,
+    /// Labelled training sequences and samples.
+    pub train_sequences: usize,
+    /// Labelled training samples.
+    pub train_samples: usize,
+    /// Epoch chosen on validation, and the validation curve.
+    pub best_epoch: usize,
+    /// Validation metric per epoch.
+    pub val_curve: Vec<f64>,
+    /// Predictions on the test rows (in [`TaskRun::split`]'s order).
+    pub test_preds: Vec<Vec<f64>>,
+    /// Every metric of the task on the whole test split.
+    pub metrics: BTreeMap<String, f64>,
+}
+
+/// A task's data, samples and splits, shared by every encoder.
+pub struct TaskRun {
+    /// The samples.
+    pub samples: TaskSamples,
+    /// Test rows and their sequence of origin.
+    pub test: Vec<usize>,
+    /// Validation rows.
+    pub val: Vec<usize>,
+    /// Training sequences (the pool budgets take shares of), in order.
+    pub train_sequences: Vec<usize>,
+    /// Every training-split row (for token statistics).
+    pub pool: Vec<usize>,
+    /// The data.
+    pub data: Arc<LabelledData>,
+}
+
+impl TaskRun {
+    /// Splits `samples` by sequence: the data's own test split when it has one (held-out
+    /// indenter shapes), else every fifth sequence; of the rest every fifth is validation.
+    pub fn new(data: Arc<LabelledData>, samples: TaskSamples) -> Result<Self, String> {
+        let seqs: Vec<usize> = {
+            let mut s: Vec<usize> = samples.samples.iter().map(|s| s.sequence).collect();
+            s.dedup();
+            s
+        };
+        let marked = seqs.iter().any(|&s| data.labels[s].test == Some(true))
+            && seqs.iter().any(|&s| data.labels[s].test == Some(false));
+        let is_test = |k: usize, s: usize| {
+            if marked {
+                data.labels[s].test == Some(true)
+            } else {
+                k % 5 == 4
+            }
+        };
+        let test_seqs: Vec<usize> = seqs
+            .iter()
+            .enumerate()
+            .filter(|&(k, &s)| is_test(k, s))
+            .map(|(_, &s)| s)
+            .collect();
+        let rest: Vec<usize> = seqs
+            .iter()
+            .enumerate()
+            .filter(|&(k, &s)| !is_test(k, s))
+            .map(|(_, &s)| s)
+            .collect();
+        let val_seqs: Vec<usize> = rest.iter().copied().skip(4).step_by(5).collect();
+        let train_sequences: Vec<usize> = rest
+            .iter()
+            .copied()
+            .filter(|s| !val_seqs.contains(s))
+            .collect();
+        if test_seqs.is_empty() || val_seqs.is_empty() || train_sequences.is_empty() {
+            return Err(format!(
+                "the {} task has {} sequences with samples: too few for training, validation and \
+                 test splits (at least 5 needed, and a held-out test split)",
+                samples.kind.name(),
+                seqs.len()
+            ));
+        }
+        let rows_of = |set: &[usize]| -> Vec<usize> {
+            (0..samples.samples.len())
+                .filter(|&i| set.contains(&samples.samples[i].sequence))
+                .collect()
+        };
+        Ok(Self {
+            test: rows_of(&test_seqs),
+            val: rows_of(&val_seqs),
+            pool: rows_of(&train_sequences),
+            train_sequences,
+            samples,
+            data,
+        })
+    }
+
+    /// The training sequences of a label budget: an evenly spaced share `budget` of the
+    /// training sequences (at least one), taken within each class for class tasks so that
+    /// every class keeps at least one sequence.
+    pub fn budget_sequences(&self, budget: f64) -> Vec<usize> {
+        let pick = |seqs: &[usize]| -> Vec<usize> {
+            let n = seqs.len();
+            let m = ((budget * n as f64).round() as usize).clamp(1, n);
+            (0..m).map(|i| seqs[i * n / m]).collect()
+        };
+        if self.samples.classes.is_empty() {
+            return pick(&self.train_sequences);
+        }
+        let mut out = Vec::new();
+        for c in 0..self.samples.classes.len() {
+            let of: Vec<usize> = self
+                .train_sequences
+                .iter()
+                .copied()
+                .filter(|&s| self.samples.sequence_class[s] == Some(c))
+                .collect();
+            if !of.is_empty() {
+                out.extend(pick(&of));
+            }
+        }
+        out.sort_unstable();
+        out
+    }
+
+    /// Training rows of a budget's sequences.
+    pub fn rows(&self, sequences: &[usize]) -> Vec<usize> {
+        self.pool
+            .iter()
+            .copied()
+            .filter(|&i| sequences.contains(&self.samples.samples[i].sequence))
+            .collect()
+    }
+
+    /// Test rows grouped by sequence, for the bootstrap.
+    pub fn test_groups(&self) -> Vec<Vec<usize>> {
+        let mut groups: BTreeMap<usize, Vec<usize>> = BTreeMap::new();
+        for (k, &i) in self.test.iter().enumerate() {
+            groups
+                .entry(self.samples.samples[i].sequence)
+                .or_default()
+                .push(k);
+        }
+        groups.into_values().collect()
+    }
+}
+
+/// An encoder of the run.
+pub struct EncoderEntry {
+    /// Name.
+    pub name: String,
+    /// What it is.
+    pub kind: EncoderKind,
+    /// Random-draw group it belongs to or is ranked in.
+    pub group: Option<String>,
+    /// Its recipe (architecture, frame stacking, patch size).
+    pub recipe: Recipe,
+    /// Weights: `None` for the pixel probe and the end-to-end model (drawn per unit).
+    pub vit: Option<Vit>,
+}
+
+/// Options of a run beyond its config.
+#[derive(Debug, Clone)]
+pub struct RunOptions {
+    /// Output directory.
+    pub out: PathBuf,
+    /// Continue a run in `out`, skipping finished units.
+    pub resume: bool,
+    /// Small settings for tests: 2 epochs, 2 random draws, budgets 1 and 0.1, at most 20
+    /// sequences per task.
+    pub quick: bool,
+}
+
+/// The randomly initialised encoder a run of `recipe` with `seed` starts from.
+pub fn random_encoder(recipe: &Recipe, seed: u64) -> Result<Vit, Error> {
+    let drawn = Recipe {
+        seed,
+        ..recipe.clone()
+    };
+    let device = Device::flex().autodiff();
+    Ok(Trainee::init(&drawn, &device)?.encoder().clone())
+}
+
+/// The encoders of a config: pretrained ones (loaded; a file of another architecture is a
+/// one-line error), the random draws, the pixel probe and the end-to-end model.
+pub fn encoders(
+    cfg: &BenchConfig,
+    random_draws_cap: Option<usize>,
+) -> Result<Vec<EncoderEntry>, Error> {
+    let mut out = Vec::new();
+    let mut groups: Vec<(String, VitConfig, Stacking)> = Vec::new();
+    for (i, r) in cfg.random.iter().enumerate() {
+        let recipe = cfg.recipe(&r.recipe, &format!("random[{i}].recipe"))?;
+        groups.push((r.name.clone(), recipe.encoder_config()?, recipe.stacking()));
+        let draws = random_draws_cap.map_or(r.draws, |c| r.draws.min(c));
+        for k in 0..draws {
+            out.push(EncoderEntry {
+                name: format!("{}-{k}", r.name),
+                kind: EncoderKind::Random,
+                group: Some(r.name.clone()),
+                vit: Some(random_encoder(&recipe, k as u64)?),
+                recipe: recipe.clone(),
+            });
+        }
+    }
+    let mut pretrained = Vec::new();
+    for (i, e) in cfg.encoder.iter().enumerate() {
+        let recipe = cfg.recipe(&e.recipe, &format!("encoder[{i}].recipe"))?;
+        let (arch, stacking) = (recipe.encoder_config()?, recipe.stacking());
+        let group = groups
+            .iter()
+            .find(|(_, a, s)| same_architecture(a, &arch) && *s == stacking)
+            .map(|(n, _, _)| n.clone());
+        if !e.weights.is_file() {
+            return Err(Error::config(
+                &cfg.path,
+                format!("encoder[{i}].weights"),
+                format!(
+                    "{}: no such file (pretrain it first: sparsh pretrain --config {} --out RUN, \
+                     then point weights at RUN/encoder.safetensors)",
+                    e.weights.display(),
+                    e.recipe.display()
+                ),
+            ));
+        }
+        let vit = sparsh_ssl::weights::load_encoder(random_encoder(&recipe, 0)?, &e.weights, None)
+            .map_err(|err| {
+                Error::config(
+                    &cfg.path,
+                    format!("encoder[{i}].weights"),
+                    format!(
+                        "does not fit the architecture of {}: {err}",
+                        e.recipe.display()
+                    ),
+                )
+            })?;
+        pretrained.push(EncoderEntry {
+            name: e.name.clone(),
+            kind: EncoderKind::Pretrained,
+            group,
+            recipe,
+            vit: Some(vit),
+        });
+    }
+    pretrained.extend(out);
+    let mut out = pretrained;
+    if let Some(b) = &cfg.baselines {
+        let recipe = cfg.recipe(&b.recipe, "baselines.recipe")?;
+        if b.pixel_probe {
+            out.push(EncoderEntry {
+                name: "pixels".into(),
+                kind: EncoderKind::Pixels,
+                group: None,
+                recipe: recipe.clone(),
+                vit: None,
+            });
+        }
+        if b.end_to_end {
+            out.push(EncoderEntry {
+                name: "end-to-end".into(),
+                kind: EncoderKind::EndToEnd,
+                group: None,
+                recipe,
+                vit: None,
+            });
+        }
+    }
+    Ok(out)
+}
+
+/// Whether two encoder configurations build the same network (the same weights fit both).
+fn same_architecture(a: &VitConfig, b: &VitConfig) -> bool {
+    format!("{a:?}") == format!("{b:?}")
+}
+
+/// Where a unit is recorded.
+fn unit_path(out: &Path, task: TaskKind, encoder: &str, budget: f64, seed: u64) -> PathBuf {
+    out.join("units")
+        .join(task.name())
+        .join(encoder)
+        .join(format!("budget{budget}_seed{seed}.json"))
+}
+
+/// Reads every recorded unit of a run directory.
+pub fn read_units(out: &Path) -> Result<Vec<Unit>, Error> {
+    let mut units = Vec::new();
+    let root = out.join("units");
+    if !root.is_dir() {
+        return Ok(units);
+    }
+    let mut files = Vec::new();
+    for task in std::fs::read_dir(&root).map_err(|e| Error::file(&root, e))? {
+        let task = task.map_err(|e| Error::file(&root, e))?.path();
+        for enc in std::fs::read_dir(&task).map_err(|e| Error::file(&task, e))? {
+            let enc = enc.map_err(|e| Error::file(&task, e))?.path();
+            for f in std::fs::read_dir(&enc).map_err(|e| Error::file(&enc, e))? {
+                let f = f.map_err(|e| Error::file(&enc, e))?.path();
+                if f.extension().is_some_and(|e| e == "json") {
+                    files.push(f);
+                }
+            }
+        }
+    }
+    files.sort();
+    for f in files {
+        let text = std::fs::read_to_string(&f).map_err(|e| Error::file(&f, e))?;
+        units.push(serde_json::from_str(&text).map_err(|e| Error::file(&f, e))?);
+    }
+    Ok(units)
+}
+
+/// Progress of a run: called with one line per finished unit.
+pub type Progress<'a> = dyn FnMut(&str) + 'a;
+
+/// Runs every unit of `cfg` not yet recorded in `opts.out`, returning the task runs (for the
+/// report) and every unit. `ensure_data` makes a task's dataset when it is missing (the CLI
+/// generates it from the task's scene).
+pub fn run(
+    cfg: &BenchConfig,
+    opts: &RunOptions,
+    ensure_data: &mut dyn FnMut(&crate::config::TaskConfig) -> Result<(), Error>,
+    progress: &mut Progress<'_>,
+) -> Result<(BTreeMap<TaskKind, TaskRun>, Vec<Unit>), Error> {
+    let encoders = encoders(cfg, opts.quick.then_some(2))?;
+    let budgets: Vec<f64> = if opts.quick {
+        vec![1.0, 0.1]
+    } else {
+        cfg.budgets.clone()
+    };
+    let epochs = if opts.quick { 2 } else { cfg.probe.epochs };
+    let seeds = if opts.quick {
+        1
+    } else {
+        cfg.probe.seeds as u64
+    };
+    let reach = encoders
+        .iter()
+        .flat_map(|e| e.recipe.frame_offsets())
+        .max()
+        .unwrap_or(0);
+    let mut sizes: Vec<[usize; 2]> = encoders.iter().map(|e| e.recipe.encoder.img_size).collect();
+    sizes.dedup();
+    if sizes.len() > 1 {
+        return Err(Error::config(
+            &cfg.path,
+            "encoder",
+            format!("every encoder must read one image size, got {sizes:?}"),
+        ));
+    }
+    let size = sizes.first().copied().unwrap_or([96, 72]);
+    let mut runs = BTreeMap::new();
+    let mut loaded: BTreeMap<PathBuf, LabelledData> = BTreeMap::new();
+    for (ti, task) in cfg.task.iter().enumerate() {
+        ensure_data(task)?;
+        if !loaded.contains_key(&task.data) {
+            loaded.insert(task.data.clone(), labels::load(&task.data, size)?);
+        }
+        let mut data = loaded[&task.data].clone();
+        if let Some(ratio) = task.slip_cone_ratio {
+            for f in data.labels.iter_mut().flat_map(|s| s.frames.iter_mut()) {
+                if let Some([x, y, z]) = f.force_n {
+                    f.slip_cone = Some(x.hypot(y) > ratio * z);
+                }
+            }
+        }
+        if opts.quick {
+            let keep = quick_sequences(&data, 20);
+            data.dataset.sequences = keep
+                .iter()
+                .map(|&s| data.dataset.sequences[s].clone())
+                .collect();
+            data.labels = keep.iter().map(|&s| data.labels[s].clone()).collect();
+        }
+        let stride = if opts.quick {
+            task.frame_stride * 2
+        } else {
+            task.frame_stride
+        };
+        let samples = extract(task.kind, &data.labels, reach, stride).map_err(|m| {
+            Error::config(
+                &cfg.path,
+                format!("task[{ti}]"),
+                format!("{}: {m}", task.data.display()),
+            )
+        })?;
+        let data = Arc::new(data);
+        let tr = TaskRun::new(data.clone(), samples).map_err(|m| {
+            Error::config(
+                &cfg.path,
+                format!("task[{ti}]"),
+                format!("{}: {m}", task.data.display()),
+            )
+        })?;
+        let classes = tr.samples.classes.len();
+        for enc in &encoders {
+            let todo: Vec<(f64, u64)> = budgets
+                .iter()
+                .flat_map(|&b| (0..seeds).map(move |s| (b, s)))
+                .filter(|&(b, s)| !unit_path(&opts.out, task.kind, &enc.name, b, s).is_file())
+                .collect();
+            if todo.is_empty() {
+                continue;
+            }
+            let sampler = Sampler::new(Arc::new(data.dataset.clone()), enc.recipe.stacking())?;
+            let index: BTreeMap<(usize, usize), usize> = sampler
+                .samples
+                .iter()
+                .enumerate()
+                .map(|(i, &st)| (st, i))
+                .collect();
+            let picks: Vec<usize> = tr
+                .samples
+                .samples
+                .iter()
+                .map(|s| index[&(s.sequence, s.frame)])
+                .collect();
+            let images = |rows: &[usize]| -> HostBatch {
+                let p: Vec<usize> = rows.iter().map(|&r| picks[r]).collect();
+                sampler.batch(&p, &AugmentConfig::none(), 0, 0)
+            };
+            let mut tokens = match enc.kind {
+                EncoderKind::Pretrained | EncoderKind::Random => Some(encode_all(
+                    enc.vit.as_ref().expect("loaded"),
+                    &images,
+                    picks.len(),
+                )),
+                EncoderKind::Pixels => Some(patch_tokens_all(
+                    &images,
+                    picks.len(),
+                    enc.recipe.encoder.patch_size,
+                )),
+                EncoderKind::EndToEnd => None,
+            };
+            if let Some(t) = &mut tokens {
+                t.standardize(&tr.pool);
+            }
+            for (budget, seed) in todo {
+                let seqs = tr.budget_sequences(budget);
+                let train = tr.rows(&seqs);
+                let split = Split {
+                    train: train.clone(),
+                    val: tr.val.clone(),
+                    test: tr.test.clone(),
+                };
+                let train_refs: Vec<_> = train.iter().map(|&i| &tr.samples.samples[i]).collect();
+                let head = Head::new(task.kind, classes, task.force_scale_n, &train_refs);
+                let fit_seed = cfg.seed.wrapping_mul(1_000_003).wrapping_add(seed);
+                let fit: Fit = match (&tokens, enc.kind) {
+                    (Some(t), _) => fit_frozen(
+                        t,
+                        &tr.samples.samples,
+                        &head,
+                        classes,
+                        &split,
+                        FitOptions {
+                            epochs,
+                            batch_size: cfg.probe.batch_size,
+                            lr: cfg.probe.lr,
+                            seed: fit_seed,
+                        },
+                    ),
+                    (None, _) => {
+                        let b = cfg
+                            .baselines
+                            .as_ref()
+                            .expect("end-to-end comes from [baselines]");
+                        let e2e_epochs = if opts.quick {
+                            2
+                        } else {
+                            b.end_to_end_epochs.unwrap_or(epochs)
+                        };
+                        fit_end_to_end(
+                            random_encoder(&enc.recipe, 1000 + seed)?,
+                            &images,
+                            &tr.samples.samples,
+                            &head,
+                            classes,
+                            &split,
+                            FitOptions {
+                                epochs: e2e_epochs,
+                                batch_size: cfg.probe.batch_size,
+                                lr: b.end_to_end_lr,
+                                seed: fit_seed,
+                            },
+                        )
+                    }
+                };
+                let mut preds = vec![Vec::new(); tr.samples.samples.len()];
+                for (&i, p) in tr.test.iter().zip(&fit.test_preds) {
+                    preds[i] = p.clone();
+                }
+                let metrics = task
+                    .kind
+                    .metrics()
+                    .iter()
+                    .map(|&m| {
+                        (
+                            m.name().to_string(),
+                            score(m, &tr.test, &preds, &tr.samples.samples),
+                        )
+                    })
+                    .collect::<BTreeMap<_, _>>();
+                let unit = Unit {
+                    task: task.kind,
+                    encoder: enc.name.clone(),
+                    kind: enc.kind,
+                    group: enc.group.clone(),
+                    budget,
+                    seed,
+                    train_sequences: seqs.len(),
+                    train_samples: train.len(),
+                    best_epoch: fit.best_epoch,
+                    val_curve: fit.val_curve,
+                    test_preds: fit.test_preds,
+                    metrics,
+                };
+                let path = unit_path(&opts.out, task.kind, &enc.name, budget, seed);
+                let json = serde_json::to_vec(&unit).map_err(|e| Error::file(&path, e))?;
+                write_atomic(&path, &json)?;
+                let primary = task.kind.metrics()[0];
+                progress(&format!(
+                    "{} {} budget {budget} seed {seed}: {} {:.4} (epoch {}, {} training sequences)",
+                    task.kind.name(),
+                    enc.name,
+                    primary.name(),
+                    unit.metrics[primary.name()],
+                    unit.best_epoch,
+                    unit.train_sequences
+                ));
+            }
+        }
+        runs.insert(task.kind, tr);
+    }
+    let units = read_units(&opts.out)?;
+    Ok((runs, units))
+}
+
+/// At most `n` sequences spread over the data, keeping the held-out split represented.
+fn quick_sequences(data: &LabelledData, n: usize) -> Vec<usize> {
+    let total = data.labels.len();
+    if total <= n {
+        return (0..total).collect();
+    }
+    let (test, train): (Vec<usize>, Vec<usize>) =
+        (0..total).partition(|&s| data.labels[s].test == Some(true));
+    let take = |v: &[usize], m: usize| -> Vec<usize> {
+        let m = m.min(v.len());
+        (0..m).map(|i| v[i * v.len() / m]).collect()
+    };
+    let n_test = if test.is_empty() { 0 } else { (n / 4).max(1) };
+    let mut keep = take(&train, n - n_test);
+    keep.extend(take(&test, n_test));
+    keep.sort_unstable();
+    keep
+}
+
+/// Writes `bytes` to `path` through a temporary file and a rename.
+fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), Error> {
+    if let Some(dir) = path.parent() {
+        std::fs::create_dir_all(dir).map_err(|e| Error::file(dir, e))?;
+    }
+    let tmp = path.with_extension("json.tmp");
+    std::fs::write(&tmp, bytes).map_err(|e| Error::file(&tmp, e))?;
+    std::fs::rename(&tmp, path).map_err(|e| Error::file(path, e))
+}
+
+/// The frozen encoder's normalized patch tokens for every sample.
+fn encode_all(vit: &Vit, images: &dyn Fn(&[usize]) -> HostBatch, n: usize) -> Tokens {
+    let enc = vit.clone().valid();
+    let device = Device::flex();
+    let mut values = Vec::new();
+    let mut dims = [0, 0, 0];
+    let rows: Vec<usize> = (0..n).collect();
+    for chunk in rows.chunks(64) {
+        let b = images(chunk);
+        let x = Tensor::<1>::from_floats(b.values.as_slice(), &device).reshape(b.shape);
+        let out = enc.forward(x, None).patches;
+        let [m, t, d] = out.dims();
+        dims = [dims[0] + m, t, d];
+        values.extend(
+            out.into_data()
+                .convert::<f32>()
+                .try_into_vec::<f32>()
+                .expect("f32 tokens"),
+        );
+    }
+    Tokens { values, dims }
+}
+
+/// The raw input patches of every sample as tokens (see
+/// [`sparsh_ssl::probe::patch_tokens`]).
+fn patch_tokens_all(images: &dyn Fn(&[usize]) -> HostBatch, n: usize, patch: usize) -> Tokens {
+    let mut values = Vec::new();
+    let mut dims = [0, 0, 0];
+    let rows: Vec<usize> = (0..n).collect();
+    for chunk in rows.chunks(64) {
+        let (v, [m, t, d]) = sparsh_ssl::probe::patch_tokens(&images(chunk), patch);
+        values.extend(v);
+        dims = [dims[0] + m, t, d];
+    }
+    Tokens { values, dims }
+}

@@ -1,0 +1,108 @@
+//! `sparsh tacbench`: the TacBench run of a config (`sparsh_bench`), generating any task
+//! dataset that is missing from its scene, then the results table and charts.
+
+use std::path::Path;
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use sparsh_bench::config::{BenchConfig, TaskConfig};
+use sparsh_bench::run::{RunOptions, run};
+
+use crate::dataset::{DeviceArg, GenerateOptions, generate};
+
+/// Runs (or resumes) the benchmark of `config` into `out`.
+pub fn tacbench(config: &Path, out: &Path, quick: bool, resume: bool) -> Result<()> {
+    let cfg = BenchConfig::load(config)?;
+    let text = std::fs::read_to_string(config).with_context(|| config.display().to_string())?;
+    let identity = serde_json::json!({ "config": text, "quick": quick }).to_string();
+    let stamp = out.join("run.json");
+    if stamp.is_file() {
+        let old = std::fs::read_to_string(&stamp).with_context(|| stamp.display().to_string())?;
+        if !resume {
+            bail!(
+                "{}: holds a TacBench run already (pass --resume to continue it, or choose another --out)",
+                out.display()
+            );
+        }
+        if old != identity {
+            bail!(
+                "{}: was run with another config or --quick setting; --resume continues only the same run",
+                stamp.display()
+            );
+        }
+    } else {
+        if out.is_dir() && std::fs::read_dir(out)?.next().is_some() {
+            bail!("{}: output directory is not empty", out.display());
+        }
+        std::fs::create_dir_all(out)
+            .with_context(|| format!("{}: cannot create", out.display()))?;
+        sparsh_data::write_atomic(&stamp, identity.as_bytes())?;
+    }
+    let start = Instant::now();
+    let mut ensure = |task: &TaskConfig| -> Result<(), sparsh_bench::Error> {
+        let complete = task.data.join("manifest.json").is_file() || official_layout(&task.data);
+        if complete {
+            return Ok(());
+        }
+        let Some(scene) = &task.scene else {
+            return Err(sparsh_bench::Error::file(
+                &task.data,
+                format!(
+                    "no dataset here and task `{}` names no scene to generate it from",
+                    task.kind.name()
+                ),
+            ));
+        };
+        eprintln!(
+            "generating {} from {}",
+            task.data.display(),
+            scene.display()
+        );
+        generate(
+            scene,
+            &task.data,
+            GenerateOptions {
+                force: false,
+                resume: true,
+                shard: None,
+                solver: None,
+                mechanics_stride: None,
+                device: DeviceArg::Cpu,
+            },
+        )
+        .map(drop)
+        .map_err(|e| sparsh_bench::Error::file(scene, format!("{e:#}")))
+    };
+    let mut done = 0usize;
+    let mut progress = |line: &str| {
+        done += 1;
+        eprintln!("[{:>6.0} s] {line}", start.elapsed().as_secs_f64());
+    };
+    let opts = RunOptions {
+        out: out.to_path_buf(),
+        resume,
+        quick,
+    };
+    let (runs, units) = run(&cfg, &opts, &mut ensure, &mut progress)?;
+    let budgets = if quick {
+        vec![1.0, 0.1]
+    } else {
+        cfg.budgets.clone()
+    };
+    let draws = if quick { 200 } else { cfg.bootstrap };
+    let rows = sparsh_bench::report::rows(&runs, &units, &budgets, draws, cfg.seed);
+    sparsh_bench::report::write(out, &rows, &budgets)?;
+    println!(
+        "tacbench: {} units ({done} new) in {:.0} s → {}",
+        units.len(),
+        start.elapsed().as_secs_f64(),
+        out.join("results.csv").display()
+    );
+    print!("{}", sparsh_bench::report::markdown(&rows, &budgets));
+    Ok(())
+}
+
+/// Whether `dir` holds a dataset not written by `sparsh generate` (an official layout).
+fn official_layout(dir: &Path) -> bool {
+    dir.exists() && !dir.join("labels.jsonl").exists() && !dir.join("dataset.json").exists()
+}

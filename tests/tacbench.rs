@@ -1,0 +1,284 @@
+//! `sparsh tacbench` end to end on a small generated dataset: every task, every kind of
+//! encoder row, the report files, resume, and one-line errors for bad configs.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+/// Two families (the texture task's two classes), press-and-slide and twist, with held-out
+/// cylinders: force, slip, pose and grasp labels on every frame.
+const DATA_SCENE: &str = r#"
+seed = 7
+[output]
+fields = []
+[[family]]
+name = "slide"
+sequences = 12
+frames_per_sequence = 14
+solver = "halfspace"
+mechanics_stride = 4
+mechanics_margin_mm = 3.0
+[family.sensor]
+preset = "digit"
+width_px = 160
+height_px = 120
+mm_per_px = 0.125
+[family.gel]
+friction = [0.3, 1.2]
+[[family.indenters]]
+shape = "sphere"
+radius_mm = [3.0, 6.0]
+[[family.indenters]]
+shape = "cylinder"
+radius_mm = [1.5, 2.5]
+split = "test"
+[family.motion]
+kind = "press_slide"
+depth_mm = [0.3, 0.8]
+slide_mm = [0.5, 2.5]
+[[family]]
+name = "twist"
+sequences = 8
+frames_per_sequence = 14
+solver = "halfspace"
+mechanics_stride = 4
+mechanics_margin_mm = 3.0
+[family.sensor]
+preset = "digit"
+width_px = 160
+height_px = 120
+mm_per_px = 0.125
+[[family.indenters]]
+shape = "sphere"
+radius_mm = [3.0, 6.0]
+[[family.indenters]]
+shape = "cylinder"
+radius_mm = [1.5, 2.5]
+split = "test"
+[family.motion]
+kind = "twist"
+depth_mm = [0.3, 0.8]
+"#;
+
+/// A ViT of two blocks on the CPU recipes' input.
+const RECIPE: &str = r#"
+objective = "mae"
+seed = 0
+[encoder]
+size = "tiny"
+img_size = [96, 72]
+patch_size = 8
+depth = 2
+[optim]
+steps = 10
+batch_size = 8
+"#;
+
+fn sparsh(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_sparsh"))
+        .args(args)
+        .output()
+        .expect("sparsh runs")
+}
+
+fn stderr(out: &Output) -> String {
+    String::from_utf8_lossy(&out.stderr).into_owned()
+}
+
+/// A user error: non-zero exit, one line on stderr naming what is wrong, no panic.
+fn assert_user_error(out: &Output, needle: &str) {
+    let err = stderr(out);
+    assert!(!out.status.success(), "should fail: {err}");
+    assert!(!err.contains("panicked"), "{err}");
+    assert_eq!(err.trim_end().lines().count(), 1, "one line: {err}");
+    assert!(err.contains(needle), "expected `{needle}` in: {err}");
+}
+
+fn config(tasks: &[(&str, &str)], budgets: &str) -> String {
+    let mut s = format!(
+        "seed = 3\nbudgets = {budgets}\nbootstrap = 50\n[probe]\nepochs = 2\n\
+         [[encoder]]\nname = \"weights\"\nrecipe = \"recipe.toml\"\nweights = \"weights.safetensors\"\n\
+         [[random]]\nname = \"random\"\nrecipe = \"recipe.toml\"\ndraws = 2\n\
+         [baselines]\nrecipe = \"recipe.toml\"\n"
+    );
+    for (kind, data) in tasks {
+        s += &format!("[[task]]\nkind = \"{kind}\"\ndata = \"{data}\"\nframe_stride = 2\n");
+    }
+    s
+}
+
+/// Writes the recipe, a weights file of its architecture (seed 5's random draw) and the
+/// dataset into `dir`.
+fn setup(dir: &Path) -> PathBuf {
+    std::fs::write(dir.join("recipe.toml"), RECIPE).unwrap();
+    let recipe = sparsh_ssl::recipe::Recipe::parse(RECIPE).unwrap();
+    let vit = sparsh_bench::run::random_encoder(&recipe, 5).unwrap();
+    sparsh_ssl::weights::save_encoder(&vit, &dir.join("weights.safetensors")).unwrap();
+    let scene = dir.join("data.toml");
+    std::fs::write(&scene, DATA_SCENE).unwrap();
+    let data = dir.join("data");
+    let out = sparsh(&[
+        "generate",
+        scene.to_str().unwrap(),
+        "--out",
+        data.to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    data
+}
+
+#[test]
+fn tacbench_runs_every_task_and_resumes() {
+    let tmp = tempfile::tempdir().unwrap();
+    setup(tmp.path());
+    let tasks = ["force", "slip", "pose", "texture", "grasp"];
+    let cfg = tmp.path().join("bench.toml");
+    let pairs: Vec<(&str, &str)> = tasks.iter().map(|&t| (t, "data")).collect();
+    std::fs::write(&cfg, config(&pairs, "[1.0, 0.33, 0.1, 0.01]")).unwrap();
+    let out_dir = tmp.path().join("run");
+    let args = [
+        "tacbench",
+        "--config",
+        cfg.to_str().unwrap(),
+        "--out",
+        out_dir.to_str().unwrap(),
+        "--quick",
+    ];
+    let out = sparsh(&args);
+    assert!(out.status.success(), "{}", stderr(&out));
+
+    // results.csv: plain CSV, header first, every task × kind of row
+    let mut reader = csv::Reader::from_path(out_dir.join("results.csv")).unwrap();
+    let header: Vec<String> = reader.headers().unwrap().iter().map(String::from).collect();
+    assert_eq!(
+        &header[..6],
+        ["task", "encoder", "kind", "budget", "metric", "value"]
+    );
+    let rows: Vec<csv::StringRecord> = reader.records().map(|r| r.unwrap()).collect();
+    for task in tasks {
+        for kind in [
+            "pretrained",
+            "random",
+            "random_draws",
+            "pixels",
+            "end_to_end",
+            "constant",
+        ] {
+            assert!(
+                rows.iter().any(|r| &r[0] == task && &r[2] == kind),
+                "no {kind} row for {task}"
+            );
+        }
+        for ext in ["png", "svg"] {
+            assert!(
+                out_dir.join(format!("budget_{task}.{ext}")).is_file(),
+                "{task} chart"
+            );
+        }
+    }
+    // quick runs budgets 1 and 0.1
+    let budgets: std::collections::BTreeSet<&str> =
+        rows.iter().map(|r| r.get(3).unwrap()).collect();
+    assert_eq!(budgets.into_iter().collect::<Vec<_>>(), ["0.1", "1.0"]);
+    // the pretrained rows are ranked among the 2 random draws of their architecture
+    let ranked = rows.iter().find(|r| &r[2] == "pretrained").unwrap();
+    let rank_of = header.iter().position(|h| h == "rank_of").unwrap();
+    assert_eq!(&ranked[rank_of], "3");
+    // accuracies and F1 lie in [0, 1], RMSEs are positive
+    let value = |r: &csv::StringRecord| r[5].parse::<f64>().unwrap();
+    for r in &rows {
+        let v = value(r);
+        if r[4].starts_with("accuracy") || &r[4] == "f1" || r[4].ends_with("balanced_accuracy") {
+            assert!((0.0..=1.0).contains(&v), "{r:?}");
+        } else {
+            assert!(v >= 0.0 && v.is_finite(), "{r:?}");
+        }
+    }
+    let md = std::fs::read_to_string(out_dir.join("results.md")).unwrap();
+    for task in tasks {
+        assert!(md.contains(&format!("**{task}**")), "{md}");
+    }
+
+    // again without --resume: refused; with it: nothing new, the same table
+    let again = sparsh(&args);
+    assert_user_error(&again, "--resume");
+    let csv_before = std::fs::read(out_dir.join("results.csv")).unwrap();
+    let mut resumed: Vec<&str> = args.to_vec();
+    resumed.push("--resume");
+    let out = sparsh(&resumed);
+    assert!(out.status.success(), "{}", stderr(&out));
+    assert!(String::from_utf8_lossy(&out.stdout).contains("(0 new)"));
+    assert_eq!(
+        std::fs::read(out_dir.join("results.csv")).unwrap(),
+        csv_before
+    );
+}
+
+#[test]
+fn bad_tacbench_configs_fail_on_one_line() {
+    let tmp = tempfile::tempdir().unwrap();
+    setup(tmp.path());
+    let run = |name: &str, text: &str| {
+        let cfg = tmp.path().join(format!("{name}.toml"));
+        std::fs::write(&cfg, text).unwrap();
+        let out_dir = tmp.path().join(format!("run_{name}"));
+        sparsh(&[
+            "tacbench",
+            "--config",
+            cfg.to_str().unwrap(),
+            "--out",
+            out_dir.to_str().unwrap(),
+            "--quick",
+        ])
+    };
+    // label budgets outside (0, 1]
+    assert_user_error(
+        &run("zero", &config(&[("force", "data")], "[1.0, 0.0]")),
+        "budgets",
+    );
+    assert_user_error(
+        &run("over", &config(&[("force", "data")], "[1.5]")),
+        "budgets",
+    );
+    // a task whose labels the data lack: one family is one texture class
+    let one_family = tmp.path().join("one_family");
+    std::fs::create_dir_all(&one_family).unwrap();
+    let scene = tmp.path().join("one.toml");
+    let first_family = DATA_SCENE
+        .split("[[family]]\nname = \"twist\"")
+        .next()
+        .unwrap();
+    std::fs::write(&scene, first_family).unwrap();
+    let out = sparsh(&[
+        "generate",
+        scene.to_str().unwrap(),
+        "--out",
+        one_family.to_str().unwrap(),
+        "--force",
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    assert_user_error(
+        &run("texture", &config(&[("texture", "one_family")], "[1.0]")),
+        "at least two classes",
+    );
+    // an encoder file of another architecture: the recipe asks for three blocks
+    let deeper = tmp.path().join("deeper.toml");
+    std::fs::write(&deeper, RECIPE.replace("depth = 2", "depth = 3")).unwrap();
+    let text = config(&[("force", "data")], "[1.0]").replacen(
+        "recipe = \"recipe.toml\"",
+        "recipe = \"deeper.toml\"",
+        1,
+    );
+    assert_user_error(&run("arch", &text), "encoder[0].weights");
+    // unknown keys and missing data
+    assert_user_error(
+        &run(
+            "typo",
+            &(config(&[("force", "data")], "[1.0]") + "epochz = 3\n"),
+        ),
+        "epochz",
+    );
+    assert_user_error(
+        &run("nodata", &config(&[("force", "nowhere")], "[1.0]")),
+        "nowhere",
+    );
+}
