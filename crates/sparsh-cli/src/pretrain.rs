@@ -48,9 +48,25 @@ pub fn pretrain(
         }
     })?;
     bar.finish();
+    let total = recipe.optim.steps;
+    if summary.last_loss.is_nan() {
+        println!(
+            "{}: already at step {} of {total}; nothing to do",
+            out.display(),
+            summary.steps
+        );
+        return Ok(());
+    }
+    let plural = |n: usize| if n == 1 { "" } else { "s" };
     println!(
-        "{} steps, last loss {:.4}, {:.2} s/step ({:.3} s waiting for data)",
-        summary.steps, summary.last_loss, summary.mean_step_s, summary.mean_wait_s
+        "step {} of {total} (this run: {} step{}, last loss {:.4}, {:.2} s/step, {:.3} s/step waiting for data) → {}",
+        summary.steps,
+        summary.ran,
+        plural(summary.ran),
+        summary.last_loss,
+        summary.mean_step_s,
+        summary.mean_wait_s,
+        out.join("encoder.safetensors").display()
     );
     if let (Some(a), Some(b)) = (summary.probe_initial, summary.probe_final) {
         println!(

@@ -3,8 +3,8 @@
 //!
 //! A run directory holds `recipe.toml` (the recipe it was started with), `log.csv`
 //! (`step,loss,lr,probe_rmse_mn,probe_linear_mn,probe_baseline_mn,probe_feature_std,probe_feature_rank,wait_s,step_s`), `checkpoint/`
-//! (`model.bpk`, `optim.bpk`, `state.json`, `encoder.safetensors`) and, at the end,
-//! `encoder.safetensors`. A checkpoint is written to `checkpoint.tmp/` and renamed into place, so
+//! (`model.bpk`, `optim.bpk`, `state.json`, `encoder.safetensors`) and `encoder.safetensors`, the
+//! encoder where the last invocation stopped (the end of the schedule, or `--max-steps`). A checkpoint is written to `checkpoint.tmp/` and renamed into place, so
 //! an interrupted write never leaves a half checkpoint. Every random draw of step `s` comes from
 //! `(seed, s)`, so `--resume` continues with the very batches, masks and views an uninterrupted
 //! run would have used.
@@ -513,6 +513,8 @@ struct State {
 pub struct RunSummary {
     /// Steps completed in total.
     pub steps: usize,
+    /// Steps run by this invocation.
+    pub ran: usize,
     /// Loss of the last step.
     pub last_loss: f64,
     /// Probe on the initial (random) encoder, if the data have force labels.
@@ -685,6 +687,7 @@ pub fn run(
         |step: usize| recipe.log.probe_every > 0 && step.is_multiple_of(recipe.log.probe_every);
     let mut summary = RunSummary {
         steps: start,
+        ran: end.saturating_sub(start),
         last_loss: f64::NAN,
         probe_initial: None,
         probe_final: None,
@@ -693,7 +696,6 @@ pub fn run(
     };
     let (mut sum_step, mut sum_wait) = (0.0, 0.0);
     for step in start..end {
-        let t0 = Instant::now();
         let probe = match &probe_set {
             Some(p) if probe_at(step) => {
                 Some(p.score(model.encoder(), recipe.log.probe_epochs, recipe.seed))
@@ -703,6 +705,8 @@ pub fn run(
         if step == 0 {
             summary.probe_initial = probe;
         }
+        // a step's time is its training step's, not the probe's before it
+        let t0 = Instant::now();
         let tw = Instant::now();
         let batch = rx
             .recv()
@@ -758,6 +762,8 @@ pub fn run(
                 .map_err(|e| Error::file(&log_path, e))?;
             on_step(&report);
         }
+    }
+    if end > start {
         crate::weights::save_encoder(model.encoder(), &opts.out.join("encoder.safetensors"))?;
     }
     log.flush().map_err(|e| Error::file(&log_path, e))?;

@@ -105,7 +105,10 @@ fn resume_continues_the_same_loss_curve() {
     );
 
     let first = run(&r, &opts("split", false, Some(3)), &mut |_| {}).unwrap();
-    assert_eq!(first.steps, 3);
+    assert_eq!((first.steps, first.ran), (3, 3));
+    // a run stopped by --max-steps leaves the encoder where it stopped, as a finished one does
+    let stopped = tmp.path().join("split").join("encoder.safetensors");
+    assert!(stopped.is_file(), "--max-steps writes encoder.safetensors");
     // a second start without --resume refuses to overwrite the run
     let err = run(&r, &opts("split", false, None), &mut |_| {})
         .unwrap_err()
@@ -115,7 +118,11 @@ fn resume_continues_the_same_loss_curve() {
     let split = tmp.path().join("split");
     std::fs::rename(split.join("checkpoint"), split.join("checkpoint.old")).unwrap();
     let second = run(&r, &opts("split", true, None), &mut |_| {}).unwrap();
-    assert_eq!(second.steps, 6);
+    assert_eq!((second.steps, second.ran), (6, 3));
+    // resuming a finished run runs nothing and says so (no loss to report)
+    let again = run(&r, &opts("split", true, None), &mut |_| {}).unwrap();
+    assert_eq!((again.steps, again.ran), (6, 0));
+    assert!(again.last_loss.is_nan());
     let b = losses(&tmp.path().join("split"));
     assert_eq!(a.len(), b.len());
     for ((sa, la), (sb, lb)) in a.iter().zip(&b) {
