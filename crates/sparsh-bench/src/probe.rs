@@ -3,7 +3,7 @@
 //! test split is the one best on the validation split — never chosen on test, the defect of the
 //! official notebook.
 
-use burn::module::Module;
+use burn::module::{Module, Param};
 use burn::optim::{AdamWConfig, GradientsParams};
 use burn::prelude::*;
 use sparsh_ssl::data::HostBatch;
@@ -112,11 +112,7 @@ pub fn fit_frozen(
         Tensor::<1>::from_floats(x.as_slice(), device).reshape([rows.len(), t, d])
     };
     let device = Device::flex().autodiff();
-    let probe = seeded_module(&device, opts.seed, || {
-        AttentiveProbeConfig::new(d, heads_for(d))
-            .with_outputs(head.outputs(classes))
-            .init(&device)
-    });
+    let probe = new_probe(d, head, classes, opts.seed, &device);
     fit(
         probe,
         &input,
@@ -152,11 +148,7 @@ pub fn fit_end_to_end(
 ) -> Fit {
     let device = Device::flex().autodiff();
     let d = encoder.dim();
-    let probe = seeded_module(&device, opts.seed, || {
-        AttentiveProbeConfig::new(d, heads_for(d))
-            .with_outputs(head.outputs(classes))
-            .init(&device)
-    });
+    let probe = new_probe(d, head, classes, opts.seed, &device);
     let model = EndToEnd {
         encoder,
         head: probe,
@@ -178,6 +170,24 @@ pub fn fit_end_to_end(
         m.head.forward(tokens)
     };
     fit(model, &input, &forward, samples, head, classes, split, opts)
+}
+
+/// A fresh attentive probe for `head` on `d`-wide tokens, drawn from `seed`, its output bias
+/// set to [`Head::force_bias`] when the head has one.
+fn new_probe(d: usize, head: &Head, classes: usize, seed: u64, device: &Device) -> AttentiveProbe {
+    let mut probe = seeded_module(device, seed, || {
+        AttentiveProbeConfig::new(d, heads_for(d))
+            .with_outputs(head.outputs(classes))
+            .init(device)
+    });
+    if let Some(b) = head.force_bias {
+        let bias: Vec<f32> = b.iter().map(|&v| v as f32).collect();
+        probe.fc2.bias = Some(Param::from_tensor(Tensor::from_floats(
+            bias.as_slice(),
+            device,
+        )));
+    }
+    probe
 }
 
 /// Heads of the probe's attention: one per 64 features (12 for ViT-base as the official
@@ -246,8 +256,10 @@ fn fit<M: Module + Clone>(
         }
         let value = score(metric, &split.val, &all_preds, samples);
         val_curve.push(value);
+        // a non-finite validation score never wins over a finite one
         let better = match &best {
             None => true,
+            Some((b, _, _)) if !b.is_finite() => value.is_finite(),
             Some((b, _, _)) => {
                 if metric.higher_is_better() {
                     value > *b
@@ -265,5 +277,118 @@ fn fit<M: Module + Clone>(
         best_epoch,
         val_curve,
         test_preds: predict(&chosen, &split.test),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::tasks::{Target, TaskKind};
+
+    /// One token per sample carries the force (scaled by 3) along features 0–2 and a marker along
+    /// feature 3, at a random place, over noise elsewhere.
+    fn localized(
+        rng: &mut Rng,
+        n: usize,
+        t: usize,
+        d: usize,
+        informative: bool,
+    ) -> (Tokens, Vec<Sample>) {
+        let mut values = Vec::with_capacity(n * t * d);
+        let mut samples = Vec::with_capacity(n);
+        for i in 0..n {
+            let f = [
+                rng.range_f64(-1.0, 1.0),
+                rng.range_f64(-1.0, 1.0),
+                rng.range_f64(0.2, 2.0),
+            ];
+            let at = rng.below(t);
+            for k in 0..t {
+                for j in 0..d {
+                    let signal = match (informative && k == at, j) {
+                        (true, 0..=2) => 3.0 * f[j],
+                        (true, 3) => 2.0, // marks the token
+                        _ => 0.0,
+                    };
+                    values.push((signal + rng.range_f64(-0.1, 0.1)) as f32);
+                }
+            }
+            samples.push(Sample {
+                sequence: i / 4,
+                frame: i % 4,
+                target: Target::Force(f),
+            });
+        }
+        (
+            Tokens {
+                values,
+                dims: [n, t, d],
+            },
+            samples,
+        )
+    }
+
+    #[test]
+    fn the_probe_reads_force_from_informative_tokens_and_picks_the_epoch_on_validation() {
+        let mut rng = Rng::new(3);
+        let (n, t, d) = (400, 8, 16);
+        let rows: Vec<usize> = (0..n).collect();
+        let split = Split {
+            train: rows.iter().copied().filter(|i| i % 5 < 3).collect(),
+            val: rows.iter().copied().filter(|i| i % 5 == 3).collect(),
+            test: rows.iter().copied().filter(|i| i % 5 == 4).collect(),
+        };
+        let opts = FitOptions {
+            epochs: 40,
+            batch_size: 32,
+            lr: 1e-3,
+            seed: 1,
+        };
+        let score_of = |tokens: &mut Tokens, samples: &[Sample]| {
+            tokens.standardize(&split.train);
+            let refs: Vec<&Sample> = split.train.iter().map(|&i| &samples[i]).collect();
+            let head = Head::new(TaskKind::Force, 0, [4.0, 4.0, 5.0], &refs);
+            let fit = fit_frozen(tokens, samples, &head, 0, &split, opts);
+            let mut preds = vec![Vec::new(); samples.len()];
+            for (&i, p) in split.test.iter().zip(&fit.test_preds) {
+                preds[i] = p.clone();
+            }
+            // the chosen epoch is the best on validation
+            let best = fit.val_curve.iter().copied().fold(f64::INFINITY, f64::min);
+            assert_eq!(fit.val_curve[fit.best_epoch - 1], best);
+            crate::tasks::score(Metric::RmseMn, &split.test, &preds, samples)
+        };
+        // the constant predictor: the training mean
+        let constant = |samples: &[Sample]| {
+            let mut m = [0.0; 3];
+            for &i in &split.train {
+                if let Target::Force(f) = samples[i].target {
+                    (0..3).for_each(|k| m[k] += f[k] / split.train.len() as f64);
+                }
+            }
+            let preds = vec![m.to_vec(); samples.len()];
+            crate::tasks::score(Metric::RmseMn, &split.test, &preds, samples)
+        };
+        let (mut tokens, samples) = localized(&mut rng, n, t, d, true);
+        let (read, mean) = (score_of(&mut tokens, &samples), constant(&samples));
+        assert!(
+            read < 0.7 * mean,
+            "informative tokens: {read} mN vs the mean's {mean}"
+        );
+        let (mut noise, samples) = localized(&mut rng, n, t, d, false);
+        let (read, mean) = (score_of(&mut noise, &samples), constant(&samples));
+        assert!(read > 0.9 * mean, "noise: {read} mN vs the mean's {mean}");
+    }
+
+    #[test]
+    fn standardized_tokens_have_zero_mean_and_unit_spread_over_the_pool() {
+        let mut t = Tokens {
+            values: vec![1.0, 10.0, 3.0, 10.0, 100.0, -5.0],
+            dims: [3, 1, 2],
+        };
+        t.standardize(&[0, 1]);
+        // feature 0 over rows 0, 1: mean 2, sd 1; feature 1 constant (sd floored): centred only
+        assert_eq!(&t.values[..4], &[-1.0, 0.0, 1.0, 0.0]);
+        assert_eq!(t.values[4], 98.0);
     }
 }

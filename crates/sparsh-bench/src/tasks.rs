@@ -421,6 +421,9 @@ pub struct Head {
     pub force_scale_n: [f64; 3],
     /// Class weights of each classification head, from the training samples.
     pub class_weights: Vec<Vec<f64>>,
+    /// Output biases that make the force head start at the training samples' mean force
+    /// (atanh of the scaled mean for Fx, Fy, its logit for Fz); `None` for other tasks.
+    pub force_bias: Option<[f64; 3]>,
 }
 
 impl Head {
@@ -461,10 +464,31 @@ impl Head {
                 _ => 0,
             }))],
         };
+        // The sigmoid on Fz starts at half the range (2.5 N for DIGIT): with AdamW's steps of
+        // about the learning rate, a short probe would spend its whole schedule walking the bias
+        // to the mean, so the head starts there instead.
+        let force_bias = (kind == TaskKind::Force && !train.is_empty()).then(|| {
+            let mut mean = [0.0; 3];
+            for s in train {
+                if let Target::Force(f) = s.target {
+                    (0..3).for_each(|k| mean[k] += f[k] / force_scale_n[k] / train.len() as f64);
+                }
+            }
+            let squash = |v: f64, lo: f64| v.clamp(lo + 1e-3, 1.0 - 1e-3);
+            [
+                squash(mean[0], -1.0).atanh(),
+                squash(mean[1], -1.0).atanh(),
+                {
+                    let p = squash(mean[2], 0.0);
+                    (p / (1.0 - p)).ln()
+                },
+            ]
+        });
         Self {
             kind,
             force_scale_n,
             class_weights,
+            force_bias,
         }
     }
 

@@ -304,3 +304,27 @@ fn slip_without_a_mechanical_state_leaves_the_state_head_out() {
         1.0
     );
 }
+
+#[test]
+fn the_force_head_starts_at_the_training_mean() {
+    let train: Vec<Sample> = [[0.4, -0.8, 1.0], [1.2, 0.0, 2.0]]
+        .iter()
+        .map(|&f| Sample {
+            sequence: 0,
+            frame: 0,
+            target: Target::Force(f),
+        })
+        .collect();
+    let refs: Vec<&Sample> = train.iter().collect();
+    let head = Head::new(TaskKind::Force, 0, [4.0, 4.0, 5.0], &refs);
+    let bias = head.force_bias.expect("a force head has a starting bias");
+    let start = head.decode(&bias.map(|b| b as f32));
+    for (got, want) in start.iter().zip([0.8, -0.4, 1.5]) {
+        assert!((got - want).abs() < 1e-6, "{start:?}");
+    }
+    assert!(
+        Head::new(TaskKind::Pose, 0, [4.0; 3], &refs)
+            .force_bias
+            .is_none()
+    );
+}
