@@ -211,6 +211,11 @@ fn tacbench_runs_every_task_and_resumes() {
         std::fs::read(out_dir.join("results.csv")).unwrap(),
         csv_before
     );
+    // other weights under the same name: the recorded units are not theirs
+    let recipe = sparsh_ssl::recipe::Recipe::parse(RECIPE).unwrap();
+    let other = sparsh_bench::run::random_encoder(&recipe, 6).unwrap();
+    sparsh_ssl::weights::save_encoder(&other, &tmp.path().join("weights.safetensors")).unwrap();
+    assert_user_error(&sparsh(&resumed), "weights file");
 }
 
 #[test]
@@ -269,6 +274,28 @@ fn bad_tacbench_configs_fail_on_one_line() {
         1,
     );
     assert_user_error(&run("arch", &text), "encoder[0].weights");
+    // a budget twice, a task kind twice, a name the baselines use, a name that is a path
+    assert_user_error(
+        &run("twice", &config(&[("force", "data")], "[1.0, 1.0]")),
+        "twice",
+    );
+    assert_user_error(
+        &run(
+            "kind",
+            &config(&[("force", "data"), ("force", "data")], "[1.0]"),
+        ),
+        "task[1].kind",
+    );
+    let reserved = config(&[("force", "data")], "[1.0]").replacen("\"weights\"", "\"pixels\"", 1);
+    assert_user_error(&run("reserved", &reserved), "encoder[0].name");
+    let path = config(&[("force", "data")], "[1.0]").replacen("\"weights\"", "\"../up\"", 1);
+    assert_user_error(&run("path", &path), "encoder[0].name");
+    let zero = config(&[("force", "data")], "[1.0]").replacen(
+        "[baselines]\nrecipe = \"recipe.toml\"\n",
+        "[baselines]\nrecipe = \"recipe.toml\"\nend_to_end_epochs = 0\n",
+        1,
+    );
+    assert_user_error(&run("zero_epochs", &zero), "end_to_end_epochs");
     // unknown keys and missing data
     assert_user_error(
         &run(

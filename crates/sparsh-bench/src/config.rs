@@ -227,8 +227,25 @@ impl BenchConfig {
                 );
             }
         }
+        for (i, b) in self.budgets.iter().enumerate() {
+            if self.budgets[..i].contains(b) {
+                return bad("budgets", format!("{b} is given twice"));
+            }
+        }
         if self.task.is_empty() {
             return bad("task", "no [[task]] given".into());
+        }
+        for (i, t) in self.task.iter().enumerate() {
+            if self.task[..i].iter().any(|o| o.kind == t.kind) {
+                return bad(
+                    &format!("task[{i}].kind"),
+                    format!(
+                        "`{}` is given twice: one dataset per task and config (write another \
+                         config for another dataset)",
+                        t.kind.name()
+                    ),
+                );
+            }
         }
         for (i, t) in self.task.iter().enumerate() {
             if t.frame_stride == 0 {
@@ -267,19 +284,58 @@ impl BenchConfig {
                 format!("must be positive, got {}", self.probe.lr),
             );
         }
-        let mut names = std::collections::BTreeSet::new();
-        for e in &self.encoder {
+        // names become file names and table rows: unique, plain, and none of the baselines'
+        let mut names: std::collections::BTreeSet<String> = ["pixels", "end-to-end", "constant"]
+            .map(String::from)
+            .into();
+        let plain = |n: &str| {
+            !n.is_empty()
+                && n.chars()
+                    .all(|c| c.is_ascii_alphanumeric() || matches!(c, '-' | '_' | '.'))
+                && !n.starts_with('.')
+        };
+        for (i, e) in self.encoder.iter().enumerate() {
+            if !plain(&e.name) {
+                return bad(
+                    &format!("encoder[{i}].name"),
+                    format!("`{}`: use letters, digits, `-`, `_` and `.` only", e.name),
+                );
+            }
             if !names.insert(e.name.clone()) {
-                return bad("encoder.name", format!("`{}` is used twice", e.name));
+                return bad(
+                    &format!("encoder[{i}].name"),
+                    format!(
+                        "`{}` is taken (names are unique; pixels, end-to-end and constant are the baselines')",
+                        e.name
+                    ),
+                );
             }
         }
-        for r in &self.random {
+        for (i, r) in self.random.iter().enumerate() {
             if r.draws == 0 {
-                return bad("random.draws", format!("`{}` draws no encoder", r.name));
+                return bad(
+                    &format!("random[{i}].draws"),
+                    format!("`{}` draws no encoder", r.name),
+                );
             }
-            if !names.insert(r.name.clone()) {
-                return bad("random.name", format!("`{}` is used twice", r.name));
+            if !plain(&r.name) {
+                return bad(
+                    &format!("random[{i}].name"),
+                    format!("`{}`: use letters, digits, `-`, `_` and `.` only", r.name),
+                );
             }
+            for name in std::iter::once(r.name.clone())
+                .chain((0..r.draws).map(|k| format!("{}-{k}", r.name)))
+            {
+                if !names.insert(name.clone()) {
+                    return bad(&format!("random[{i}].name"), format!("`{name}` is taken"));
+                }
+            }
+        }
+        if let Some(b) = &self.baselines
+            && b.end_to_end_epochs == Some(0)
+        {
+            return bad("baselines.end_to_end_epochs", "must be at least 1".into());
         }
         if let Some(b) = &self.baselines
             && !(b.end_to_end_lr.is_finite() && b.end_to_end_lr > 0.0)

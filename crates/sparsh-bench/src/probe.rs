@@ -306,7 +306,7 @@ mod tests {
             for k in 0..t {
                 for j in 0..d {
                     let signal = match (informative && k == at, j) {
-                        (true, 0..=2) => 3.0 * f[j],
+                        (true, 0..=2) => 3.0 * f.get(j).copied().unwrap_or(0.0),
                         (true, 3) => 2.0, // marks the token
                         _ => 0.0,
                     };

@@ -166,8 +166,11 @@ pub fn rows(
                 task.metrics()
                     .iter()
                     .map(move |&m| {
-                        let value =
-                            us.iter().map(|u| u.metrics[m.name()]).sum::<f64>() / us.len() as f64;
+                        let value = us
+                            .iter()
+                            .map(|u| u.metrics.get(m.name()).copied().unwrap_or(f64::NAN))
+                            .sum::<f64>()
+                            / us.len() as f64;
                         let stat = |k: &[usize]| {
                             let rows: Vec<usize> = k.iter().map(|&j| tr.test[j]).collect();
                             preds

@@ -61,6 +61,8 @@ pub struct Unit {
     pub test_preds: Vec<Vec<f64>>,
     /// Every metric of the task on the whole test split.
     pub metrics: BTreeMap<String, f64>,
+    /// Fingerprint of the test samples (their sequences and frames) the predictions belong to.
+    pub test_key: u64,
 }
 
 /// A task's data, samples and splits, shared by every encoder.
@@ -173,6 +175,21 @@ impl TaskRun {
             .copied()
             .filter(|&i| sequences.contains(&self.samples.samples[i].sequence))
             .collect()
+    }
+
+    /// Fingerprint of the test samples (FNV-1a over their sequence and frame indices): a
+    /// recorded unit whose key differs was made on other data.
+    pub fn test_key(&self) -> u64 {
+        let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+        for &i in &self.test {
+            let s = &self.samples.samples[i];
+            for v in [s.sequence as u64, s.frame as u64] {
+                for b in v.to_le_bytes() {
+                    h = (h ^ b as u64).wrapping_mul(0x0000_0100_0000_01b3);
+                }
+            }
+        }
+        h
     }
 
     /// Test rows grouped by sequence, for the bootstrap.
@@ -346,10 +363,15 @@ pub fn read_units(out: &Path) -> Result<Vec<Unit>, Error> {
     }
     files.sort();
     for f in files {
-        let text = std::fs::read_to_string(&f).map_err(|e| Error::file(&f, e))?;
-        units.push(serde_json::from_str(&text).map_err(|e| Error::file(&f, e))?);
+        units.push(read_unit(&f)?);
     }
     Ok(units)
+}
+
+/// Reads one unit record.
+fn read_unit(path: &Path) -> Result<Unit, Error> {
+    let text = std::fs::read_to_string(path).map_err(|e| Error::file(path, e))?;
+    serde_json::from_str(&text).map_err(|e| Error::file(path, e))
 }
 
 /// Progress of a run: called with one line per finished unit.
@@ -436,11 +458,27 @@ pub fn run(
         })?;
         let classes = tr.samples.classes.len();
         for enc in &encoders {
-            let todo: Vec<(f64, u64)> = budgets
-                .iter()
-                .flat_map(|&b| (0..seeds).map(move |s| (b, s)))
-                .filter(|&(b, s)| !unit_path(&opts.out, task.kind, &enc.name, b, s).is_file())
-                .collect();
+            let mut todo: Vec<(f64, u64)> = Vec::new();
+            for b in &budgets {
+                for s in 0..seeds {
+                    let path = unit_path(&opts.out, task.kind, &enc.name, *b, s);
+                    if !path.is_file() {
+                        todo.push((*b, s));
+                        continue;
+                    }
+                    let unit = read_unit(&path)?;
+                    if unit.test_key != tr.test_key() || unit.test_preds.len() != tr.test.len() {
+                        return Err(Error::file(
+                            &path,
+                            format!(
+                                "made on other test samples than {} holds now (was the data \
+                                 regenerated?): start a new run in another --out",
+                                task.data.display()
+                            ),
+                        ));
+                    }
+                }
+            }
             if todo.is_empty() {
                 continue;
             }
@@ -455,8 +493,18 @@ pub fn run(
                 .samples
                 .samples
                 .iter()
-                .map(|s| index[&(s.sequence, s.frame)])
-                .collect();
+                .map(|s| {
+                    index.get(&(s.sequence, s.frame)).copied().ok_or_else(|| {
+                        Error::file(
+                            &task.data,
+                            format!(
+                                "sequence {} has labels for frame {} but no such frame",
+                                s.sequence, s.frame
+                            ),
+                        )
+                    })
+                })
+                .collect::<Result<_, _>>()?;
             let images = |rows: &[usize]| -> HostBatch {
                 let p: Vec<usize> = rows.iter().map(|&r| picks[r]).collect();
                 sampler.batch(&p, &AugmentConfig::none(), 0, 0)
@@ -556,6 +604,7 @@ pub fn run(
                     val_curve: fit.val_curve,
                     test_preds: fit.test_preds,
                     metrics,
+                    test_key: tr.test_key(),
                 };
                 let path = unit_path(&opts.out, task.kind, &enc.name, budget, seed);
                 let json = serde_json::to_vec(&unit).map_err(|e| Error::file(&path, e))?;

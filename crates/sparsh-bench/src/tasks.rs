@@ -736,7 +736,8 @@ pub fn score(metric: Metric, rows: &[usize], preds: &[Vec<f64>], samples: &[Samp
     }
 }
 
-/// Mean recall over the classes present: `(correct, total)` per class.
+/// Mean recall over the classes present: `(correct, total)` per class; NaN when no sample
+/// carries the label (a metric that does not apply, as the state of the official slip data).
 fn balanced(per_class: &[(f64, f64)]) -> f64 {
     let present: Vec<f64> = per_class
         .iter()
@@ -744,7 +745,7 @@ fn balanced(per_class: &[(f64, f64)]) -> f64 {
         .map(|(ok, total)| ok / total)
         .collect();
     if present.is_empty() {
-        0.0
+        f64::NAN
     } else {
         present.iter().sum::<f64>() / present.len() as f64
     }

@@ -5,6 +5,7 @@ use std::path::Path;
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
+use sha2::{Digest, Sha256};
 use sparsh_bench::config::{BenchConfig, TaskConfig};
 use sparsh_bench::run::{RunOptions, run};
 
@@ -13,8 +14,24 @@ use crate::dataset::{DeviceArg, GenerateOptions, generate};
 /// Runs (or resumes) the benchmark of `config` into `out`.
 pub fn tacbench(config: &Path, out: &Path, quick: bool, resume: bool) -> Result<()> {
     let cfg = BenchConfig::load(config)?;
+    // the pretrained encoders load and fit their recipes before anything is written
+    sparsh_bench::run::encoders(&cfg, Some(0))?;
     let text = std::fs::read_to_string(config).with_context(|| config.display().to_string())?;
-    let identity = serde_json::json!({ "config": text, "quick": quick }).to_string();
+    // what the units depend on: the config, --quick, every recipe and weights file
+    let mut inputs = serde_json::Map::new();
+    let files = cfg.encoder.iter().flat_map(|e| [&e.recipe, &e.weights]);
+    let files = files.chain(cfg.random.iter().map(|r| &r.recipe));
+    let files = files.chain(cfg.baselines.iter().map(|b| &b.recipe));
+    for f in files {
+        let bytes = std::fs::read(f).with_context(|| f.display().to_string())?;
+        let digest: String = Sha256::digest(&bytes)
+            .iter()
+            .map(|b| format!("{b:02x}"))
+            .collect();
+        inputs.insert(f.display().to_string(), digest.into());
+    }
+    let identity =
+        serde_json::json!({ "config": text, "quick": quick, "sha256": inputs }).to_string();
     let stamp = out.join("run.json");
     if stamp.is_file() {
         let old = std::fs::read_to_string(&stamp).with_context(|| stamp.display().to_string())?;
@@ -26,7 +43,7 @@ pub fn tacbench(config: &Path, out: &Path, quick: bool, resume: bool) -> Result<
         }
         if old != identity {
             bail!(
-                "{}: was run with another config or --quick setting; --resume continues only the same run",
+                "{}: was run with another config, --quick setting, recipe or weights file; --resume continues only the same run",
                 stamp.display()
             );
         }

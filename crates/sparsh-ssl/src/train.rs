@@ -745,23 +745,24 @@ pub fn run(
     let ran = end.saturating_sub(start).max(1) as f64;
     summary.mean_step_s = sum_step / ran;
     summary.mean_wait_s = sum_wait / ran;
-    if end == total {
-        if let Some(p) = &probe_set {
-            let score = p.score(model.encoder(), recipe.log.probe_epochs, recipe.seed);
-            summary.probe_final = Some(score);
-            let report = StepReport {
-                step: total,
-                total,
-                loss: f64::NAN,
-                lr: 0.0,
-                wait_s: 0.0,
-                step_s: 0.0,
-                probe: Some(score),
-            };
-            log.write_all(csv_row(&report, true).as_bytes())
-                .map_err(|e| Error::file(&log_path, e))?;
-            on_step(&report);
-        }
+    if end == total
+        && end > start
+        && let Some(p) = &probe_set
+    {
+        let score = p.score(model.encoder(), recipe.log.probe_epochs, recipe.seed);
+        summary.probe_final = Some(score);
+        let report = StepReport {
+            step: total,
+            total,
+            loss: f64::NAN,
+            lr: 0.0,
+            wait_s: 0.0,
+            step_s: 0.0,
+            probe: Some(score),
+        };
+        log.write_all(csv_row(&report, true).as_bytes())
+            .map_err(|e| Error::file(&log_path, e))?;
+        on_step(&report);
     }
     if end > start {
         crate::weights::save_encoder(model.encoder(), &opts.out.join("encoder.safetensors"))?;
