@@ -374,17 +374,22 @@ fn read_unit(path: &Path) -> Result<Unit, Error> {
     serde_json::from_str(&text).map_err(|e| Error::file(path, e))
 }
 
+/// Called after each task with the task runs and every recorded unit so far.
+pub type TaskDone<'a> = dyn FnMut(&BTreeMap<TaskKind, TaskRun>, &[Unit]) -> Result<(), Error> + 'a;
+
 /// Progress of a run: called with one line per finished unit.
 pub type Progress<'a> = dyn FnMut(&str) + 'a;
 
 /// Runs every unit of `cfg` not yet recorded in `opts.out`, returning the task runs (for the
 /// report) and every unit. `ensure_data` makes a task's dataset when it is missing (the CLI
-/// generates it from the task's scene).
+/// generates it from the task's scene); `task_done` sees the runs and units so far after each
+/// task (the CLI rewrites the report, so a long run shows its finished tasks).
 pub fn run(
     cfg: &BenchConfig,
     opts: &RunOptions,
     ensure_data: &mut dyn FnMut(&crate::config::TaskConfig) -> Result<(), Error>,
     progress: &mut Progress<'_>,
+    task_done: &mut TaskDone<'_>,
 ) -> Result<(BTreeMap<TaskKind, TaskRun>, Vec<Unit>), Error> {
     let encoders = encoders(cfg, opts.quick.then_some(2))?;
     let budgets: Vec<f64> = if opts.quick {
@@ -622,6 +627,7 @@ pub fn run(
             }
         }
         runs.insert(task.kind, tr);
+        task_done(&runs, &read_units(&opts.out)?)?;
     }
     let units = read_units(&opts.out)?;
     Ok((runs, units))

@@ -100,15 +100,18 @@ pub fn tacbench(config: &Path, out: &Path, quick: bool, resume: bool) -> Result<
         resume,
         quick,
     };
-    let (runs, units) = run(&cfg, &opts, &mut ensure, &mut progress)?;
     let budgets = if quick {
         vec![1.0, 0.1]
     } else {
         cfg.budgets.clone()
     };
     let draws = if quick { 200 } else { cfg.bootstrap };
+    let mut report = |runs: &_, units: &[_]| {
+        let rows = sparsh_bench::report::rows(runs, units, &budgets, draws, cfg.seed);
+        sparsh_bench::report::write(out, &rows, &budgets)
+    };
+    let (runs, units) = run(&cfg, &opts, &mut ensure, &mut progress, &mut report)?;
     let rows = sparsh_bench::report::rows(&runs, &units, &budgets, draws, cfg.seed);
-    sparsh_bench::report::write(out, &rows, &budgets)?;
     println!(
         "tacbench: {} units ({done} new) in {:.0} s → {}",
         units.len(),
