@@ -543,7 +543,8 @@ fn draw_chart<DB: DrawingBackend>(
         .y_desc(m.name())
         .label_style((SANS, 15))
         .axis_desc_style((SANS, 17))
-        .x_label_formatter(&|v| format!("{v}"))
+        .x_labels(6)
+        .x_label_formatter(&|v| format!("{}", (v * 100.0).round() / 100.0))
         .draw()
         .map_err(chart_err)?;
     for (i, (name, kind, pts)) in lines.iter().enumerate() {
