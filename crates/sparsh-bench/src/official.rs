@@ -1429,6 +1429,22 @@ mod tests {
         assert_eq!(one.labels[0].test, Some(false));
         let frame_file = tmp.path().join("sphere/batch_2/dataset_digit_01.pkl");
         assert_eq!(load(&frame_file, SIZE).unwrap().labels, one.labels);
+        // the TacBench tasks read these labels: force and slip (the cone label only), not pose
+        use crate::tasks::{Target, TaskKind, extract};
+        let force = extract(TaskKind::Force, &data.labels, 0, 1).unwrap();
+        assert_eq!(force.samples.len(), 12);
+        assert_eq!(force.samples[1].target, Target::Force([0.3, -0.2, 1.5]));
+        let slip = extract(TaskKind::Slip, &data.labels, 0, 1).unwrap();
+        assert!(matches!(
+            slip.samples[2].target,
+            Target::Slip {
+                cone: true,
+                state: None,
+                ..
+            }
+        ));
+        let err = extract(TaskKind::Pose, &data.labels, 0, 1).unwrap_err();
+        assert!(err.contains("pose_change_se2"), "{err}");
     }
 
     #[test]
@@ -1530,6 +1546,19 @@ mod tests {
             .map(|f| f.pose_change_se2.unwrap()[0])
             .sum();
         assert!((sum - window[5][0]).abs() < 1e-9);
+        // the pose task's 5-frame change is the official label
+        let pose = crate::tasks::extract(crate::tasks::TaskKind::Pose, &data.labels, 0, 1).unwrap();
+        assert_eq!(pose.samples[0].frame, 5);
+        let crate::tasks::Target::Pose(p) = pose.samples[0].target else {
+            panic!("a pose target");
+        };
+        for c in 0..3 {
+            assert!(
+                (p[c] - window[5][c]).abs() < 1e-9,
+                "{p:?} vs {:?}",
+                window[5]
+            );
+        }
     }
 
     #[test]
