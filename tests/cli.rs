@@ -704,6 +704,20 @@ fn quick_study_writes_tables_and_charts() {
     assert!(read("stability.csv").starts_with("sweep,value,rung,"));
     let written = read("solver_table.csv");
     assert_eq!(std::fs::read_to_string(&table).unwrap(), written);
+    // every CSV starts with its header row; provenance is in a JSON sidecar
+    for name in ["study.csv", "stability.csv", "solver_table.csv"] {
+        assert!(!read(name).starts_with('#'), "{name}");
+    }
+    for sidecar in [dir.join("solver_table.json"), table.with_extension("json")] {
+        let json: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&sidecar).unwrap()).unwrap();
+        assert!(
+            json["written_by"]
+                .as_str()
+                .unwrap()
+                .contains("study --quick")
+        );
+    }
     let parsed = sparsh_scene::auto::SolverTable::parse(&written).unwrap();
     assert!(!parsed.rows.is_empty());
     for (stem, size, needle) in [

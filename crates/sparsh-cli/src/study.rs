@@ -35,9 +35,19 @@ pub fn study(out: &Path, quick: bool, table: Option<&Path>) -> Result<()> {
     write_atomic(&out.join("study.csv"), study.points_csv().as_bytes())?;
     write_atomic(&out.join("stability.csv"), study.stability_csv().as_bytes())?;
     let table_csv = study.table.to_csv();
-    write_atomic(&out.join("solver_table.csv"), table_csv.as_bytes())?;
-    if let Some(path) = table {
-        write_atomic(path, table_csv.as_bytes())?;
+    // provenance beside the data, not inside it, so default CSV readers take the file as it is
+    let provenance = serde_json::json!({
+        "written_by": format!("sparsh {} study{}", env!("CARGO_PKG_VERSION"), if quick { " --quick" } else { "" }),
+        "unix_time_s": std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.as_secs()),
+        "threads": 1,
+        "what": sparsh_scene::auto::SolverTable::DESCRIPTION,
+    })
+    .to_string();
+    for csv in std::iter::once(out.join("solver_table.csv")).chain(table.map(Path::to_path_buf)) {
+        write_atomic(&csv, table_csv.as_bytes())?;
+        write_atomic(&csv.with_extension("json"), provenance.as_bytes())?;
     }
 
     plotters::style::register_font(SANS, FontStyle::Normal, FONT)

@@ -55,7 +55,8 @@ impl SolverTable {
         })
     }
 
-    /// Parses the CSV text written by [`SolverTable::to_csv`]; `#` lines are comments.
+    /// Parses the CSV text written by [`SolverTable::to_csv`] (`#` lines, which earlier versions
+    /// wrote before the header, are skipped).
     pub fn parse(text: &str) -> Result<SolverTable, String> {
         let mut lines = text
             .lines()
@@ -92,14 +93,14 @@ impl SolverTable {
         Ok(SolverTable { rows })
     }
 
-    /// CSV text, one row per studied point.
+    /// What the table holds, for the provenance sidecar the study writes beside it.
+    pub const DESCRIPTION: &'static str = "worst |relative force error| and worst ms per frame of \
+        each rung at each studied contact radius in cells (a_over_cell) and contact radius over gel \
+        thickness (a_over_h); read by solver = \"auto\"";
+
+    /// CSV text (RFC 4180: the header row first, nothing before it), one row per studied point.
     pub fn to_csv(&self) -> String {
-        let mut out = String::from(
-            "# Written by `sparsh study`: worst |relative force error| and worst ms per frame of \
-             each rung at each studied contact radius in cells (a_over_cell) and contact radius \
-             over gel thickness (a_over_h). Read by solver = \"auto\".\n",
-        );
-        out.push_str(HEADER);
+        let mut out = String::from(HEADER);
         out.push('\n');
         for r in &self.rows {
             out.push_str(&format!(

@@ -102,3 +102,30 @@ fn choice_is_the_cheapest_that_meets_the_tolerance() {
     assert!(!c.meets_tolerance());
     assert!(choose(&[]).is_none());
 }
+
+/// The shipped table and what the study writes are plain CSV: the `csv` crate's default reader
+/// takes the header from the first line and every row has the header's five fields.
+#[test]
+fn tables_read_with_default_csv_readers() {
+    let written = SolverTable::parse(TABLE).unwrap().to_csv();
+    for text in [sparsh_scene::auto::SOLVER_TABLE_CSV, written.as_str()] {
+        let mut reader = csv::Reader::from_reader(text.as_bytes());
+        let header: Vec<String> = reader.headers().unwrap().iter().map(String::from).collect();
+        assert_eq!(
+            header,
+            [
+                "rung",
+                "a_over_cell",
+                "a_over_h",
+                "rel_error",
+                "ms_per_frame"
+            ]
+        );
+        let rows: Vec<csv::StringRecord> = reader.records().map(|r| r.unwrap()).collect();
+        assert!(!rows.is_empty());
+        for r in &rows {
+            assert_eq!(r.len(), 5, "{r:?}");
+            r[1].parse::<f64>().unwrap();
+        }
+    }
+}
