@@ -211,6 +211,17 @@ fn tacbench_runs_every_task_and_resumes() {
         std::fs::read(out_dir.join("results.csv")).unwrap(),
         csv_before
     );
+    // --report-only trains nothing and rewrites the same report
+    let mut report_only: Vec<&str> = args.to_vec();
+    report_only.push("--report-only");
+    std::fs::remove_file(out_dir.join("results.csv")).unwrap();
+    let out = sparsh(&report_only);
+    assert!(out.status.success(), "{}", stderr(&out));
+    assert!(String::from_utf8_lossy(&out.stdout).contains("(0 new)"));
+    assert_eq!(
+        std::fs::read(out_dir.join("results.csv")).unwrap(),
+        csv_before
+    );
     // other weights under the same name: the recorded units are not theirs
     let recipe = sparsh_ssl::recipe::Recipe::parse(RECIPE).unwrap();
     let other = sparsh_bench::run::random_encoder(&recipe, 6).unwrap();

@@ -428,7 +428,7 @@ fn fmt(v: f64) -> String {
 }
 
 fn color(i: usize) -> RGBColor {
-    const PALETTE: [RGBColor; 8] = [
+    const PALETTE: [RGBColor; 12] = [
         RGBColor(0, 114, 178),
         RGBColor(213, 94, 0),
         RGBColor(0, 158, 115),
@@ -437,6 +437,10 @@ fn color(i: usize) -> RGBColor {
         RGBColor(86, 180, 233),
         RGBColor(120, 120, 120),
         RGBColor(0, 0, 0),
+        RGBColor(160, 30, 60),
+        RGBColor(110, 60, 170),
+        RGBColor(150, 150, 40),
+        RGBColor(60, 60, 140),
     ];
     PALETTE[i % PALETTE.len()]
 }

@@ -229,6 +229,8 @@ pub struct RunOptions {
     /// Small settings for tests: 2 epochs, 2 random draws, budgets 1 and 0.1, at most 20
     /// sequences per task.
     pub quick: bool,
+    /// Train nothing: report the units already recorded (tasks without any are left out).
+    pub report_only: bool,
 }
 
 /// The randomly initialised encoder a run of `recipe` with `seed` starts from.
@@ -421,6 +423,9 @@ pub fn run(
     let mut runs = BTreeMap::new();
     let mut loaded: BTreeMap<PathBuf, LabelledData> = BTreeMap::new();
     for (ti, task) in cfg.task.iter().enumerate() {
+        if opts.report_only && !opts.out.join("units").join(task.kind.name()).is_dir() {
+            continue;
+        }
         ensure_data(task)?;
         if !loaded.contains_key(&task.data) {
             loaded.insert(task.data.clone(), labels::load(&task.data, size)?);
@@ -484,7 +489,7 @@ pub fn run(
                     }
                 }
             }
-            if todo.is_empty() {
+            if todo.is_empty() || opts.report_only {
                 continue;
             }
             let sampler = Sampler::new(Arc::new(data.dataset.clone()), enc.recipe.stacking())?;

@@ -256,6 +256,9 @@ enum Command {
         /// Continue a run in --out, skipping the units it finished.
         #[arg(long)]
         resume: bool,
+        /// Train nothing: rewrite the report of the run in --out from the units it finished.
+        #[arg(long, conflicts_with = "resume")]
+        report_only: bool,
     },
 }
 
@@ -392,7 +395,8 @@ fn run(cli: Cli) -> Result<()> {
             out,
             quick,
             resume,
-        } => tacbench::tacbench(&config, &out, quick, resume),
+            report_only,
+        } => tacbench::tacbench(&config, &out, quick, resume, report_only),
     }
 }
 

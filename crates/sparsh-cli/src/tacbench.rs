@@ -12,7 +12,13 @@ use sparsh_bench::run::{RunOptions, run};
 use crate::dataset::{DeviceArg, GenerateOptions, generate};
 
 /// Runs (or resumes) the benchmark of `config` into `out`.
-pub fn tacbench(config: &Path, out: &Path, quick: bool, resume: bool) -> Result<()> {
+pub fn tacbench(
+    config: &Path,
+    out: &Path,
+    quick: bool,
+    resume: bool,
+    report_only: bool,
+) -> Result<()> {
     let cfg = BenchConfig::load(config)?;
     // the pretrained encoders load and fit their recipes before anything is written
     sparsh_bench::run::encoders(&cfg, Some(0))?;
@@ -35,7 +41,7 @@ pub fn tacbench(config: &Path, out: &Path, quick: bool, resume: bool) -> Result<
     let stamp = out.join("run.json");
     if stamp.is_file() {
         let old = std::fs::read_to_string(&stamp).with_context(|| stamp.display().to_string())?;
-        if !resume {
+        if !resume && !report_only {
             bail!(
                 "{}: holds a TacBench run already (pass --resume to continue it, or choose another --out)",
                 out.display()
@@ -47,6 +53,8 @@ pub fn tacbench(config: &Path, out: &Path, quick: bool, resume: bool) -> Result<
                 stamp.display()
             );
         }
+    } else if report_only {
+        bail!("{}: holds no TacBench run to report", out.display());
     } else {
         if out.is_dir() && std::fs::read_dir(out)?.next().is_some() {
             bail!("{}: output directory is not empty", out.display());
@@ -99,6 +107,7 @@ pub fn tacbench(config: &Path, out: &Path, quick: bool, resume: bool) -> Result<
         out: out.to_path_buf(),
         resume,
         quick,
+        report_only,
     };
     let budgets = if quick {
         vec![1.0, 0.1]
