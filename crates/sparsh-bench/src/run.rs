@@ -657,14 +657,12 @@ fn quick_sequences(data: &LabelledData, n: usize) -> Vec<usize> {
     keep
 }
 
-/// Writes `bytes` to `path` through a temporary file and a rename.
+/// Writes `bytes` to `path` (its directory created) through [`sparsh_data::write_atomic`].
 fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), Error> {
     if let Some(dir) = path.parent() {
         std::fs::create_dir_all(dir).map_err(|e| Error::file(dir, e))?;
     }
-    let tmp = path.with_extension("json.tmp");
-    std::fs::write(&tmp, bytes).map_err(|e| Error::file(&tmp, e))?;
-    std::fs::rename(&tmp, path).map_err(|e| Error::file(path, e))
+    sparsh_data::write_atomic(path, bytes).map_err(|e| Error::file(path, e))
 }
 
 /// The frozen encoder's normalized patch tokens for every sample.
