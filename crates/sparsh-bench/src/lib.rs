@@ -13,8 +13,13 @@
 //! - [`stats`]: bootstrap intervals over test sequences, spread of random draws.
 //! - [`report`]: `results.csv`, the Markdown table and the label-budget charts.
 //! - [`run`]: the benchmark loop with resume.
+//! - [`fields`]: T1A, the normal and shear field decoder scored against ground-truth fields,
+//!   with [`flow`] (Farnebäck optical flow, its classical baseline) and [`fieldfig`] (figures).
 
 pub mod config;
+pub mod fieldfig;
+pub mod fields;
+pub mod flow;
 pub mod labels;
 pub mod official;
 pub mod probe;

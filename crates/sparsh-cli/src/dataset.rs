@@ -341,6 +341,7 @@ fn write_sequence(
     totals: &Mutex<StageTotals>,
 ) -> Result<()> {
     let output = seq.scene.output.clone();
+    let mm_per_px = seq.scene.sensor.mm_per_px;
     let mut sim = Simulator::on_device(seq.scene, gpu)?;
     let mut part = SequencePart {
         sequence: seq.sequence,
@@ -399,6 +400,7 @@ fn write_sequence(
             },
             pose_change_se2: [dp[0], dp[1], dr[2]],
             contact_area_mm2: frame.contact_area_mm2,
+            mm_per_px: Some(mm_per_px),
             markers_px: frame.markers_px.clone(),
             background: background.clone(),
         });

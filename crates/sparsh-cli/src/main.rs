@@ -1,6 +1,7 @@
 //! `sparsh`: the command line of the sparsh tactile simulator.
 
 mod dataset;
+mod fieldprobe;
 mod optics;
 mod pretrain;
 mod study;
@@ -260,6 +261,51 @@ enum Command {
         #[arg(long, conflicts_with = "resume")]
         report_only: bool,
     },
+    /// T1A: the normal and shear field decoder (DPT) on a frozen encoder, trained without
+    /// field labels, scored against the simulator's ground-truth fields.
+    Fieldprobe {
+        #[command(subcommand)]
+        action: FieldprobeAction,
+    },
+}
+
+#[derive(Debug, Subcommand)]
+enum FieldprobeAction {
+    /// Train the self-supervised decoder and the references (supervised ceiling, random
+    /// encoders) on the training sequences of a generated dataset; reads no field while
+    /// training the self-supervised decoders.
+    Train {
+        /// Field-probe config (TOML, e.g. tacbench/fields_cpu.toml).
+        #[arg(long)]
+        config: PathBuf,
+        /// Frozen encoder weights (safetensors) of the config's recipe.
+        #[arg(long)]
+        encoder: PathBuf,
+        /// Dataset written by `sparsh generate` (e.g. from scenes/tacbench_fields.toml).
+        #[arg(long)]
+        data: PathBuf,
+        /// Run directory (run.json, decoders/).
+        #[arg(long)]
+        out: PathBuf,
+        /// Smoke run: 3 steps per decoder, one random draw, 24 training pairs.
+        #[arg(long)]
+        quick: bool,
+    },
+    /// Score a run's decoders, the classical baselines and the markers on the held-out
+    /// sequences against the ground-truth fields; writes RUN/eval/fields.csv, fields.md and
+    /// fields_examples.png.
+    Eval {
+        /// Run directory written by `sparsh fieldprobe train`.
+        #[arg(long)]
+        run: PathBuf,
+        /// Dataset with fields (its `test` split is scored).
+        #[arg(long)]
+        data: PathBuf,
+        /// Also score the contact region on a real Taxim calibration pack (dataPack.npz);
+        /// may be given several times.
+        #[arg(long)]
+        pack: Vec<PathBuf>,
+    },
 }
 
 fn main() -> ExitCode {
@@ -397,6 +443,16 @@ fn run(cli: Cli) -> Result<()> {
             resume,
             report_only,
         } => tacbench::tacbench(&config, &out, quick, resume, report_only),
+        Command::Fieldprobe { action } => match action {
+            FieldprobeAction::Train {
+                config,
+                encoder,
+                data,
+                out,
+                quick,
+            } => fieldprobe::train(&config, &encoder, &data, &out, quick),
+            FieldprobeAction::Eval { run, data, pack } => fieldprobe::eval(&run, &data, &pack),
+        },
     }
 }
 

@@ -50,6 +50,10 @@ pub struct Label {
     pub pose_change_se2: [f64; 3],
     /// Contact area (mm²).
     pub contact_area_mm2: f64,
+    /// Pixel pitch of the frame (mm per pixel): converts the fields' displacements (mm) to
+    /// image motion; absent in datasets written before it was recorded.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub mm_per_px: Option<f64>,
     /// Centres of the gel's printed markers in this frame (pixels: x = column, y = row, pixel
     /// (0, 0)'s centre at the origin), row by row; absent for a markerless gel.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]

@@ -429,6 +429,34 @@ impl Vit {
         self.forward_tokens(tokens)
     }
 
+    /// Layer-normalized patch tokens after each block in `hooks` (0-based, ascending, repeats
+    /// allowed), the
+    /// intermediate layers a dense (DPT) decoder reads (DINOv2's `get_intermediate_layers` with
+    /// `norm = True`); register tokens are dropped.
+    ///
+    /// # Shapes
+    /// - `x`: `[batch, frames, channels, height, width]` → one `[batch, tokens, dim]` per hook
+    pub fn forward_hooks(&self, x: Tensor<5>, hooks: &[usize]) -> Vec<Tensor<3>> {
+        let tokens = self.embed(x);
+        let [b, _, d] = tokens.dims();
+        let r = self.register_tokens.as_ref().map_or(0, |p| p.dims()[1]);
+        let mut x = match &self.register_tokens {
+            Some(reg) => Tensor::cat(vec![reg.val().expand([b, r, d]), tokens], 1),
+            None => tokens,
+        };
+        let mut out = Vec::with_capacity(hooks.len());
+        let last = hooks.iter().copied().max().unwrap_or(0);
+        for (i, block) in self.blocks.iter().enumerate().take(last + 1) {
+            x = block.forward(x);
+            // a block hooked twice (shallow encoders) is read twice
+            for _ in hooks.iter().filter(|&&h| h == i) {
+                let n = x.dims()[1];
+                out.push(self.norm.forward(x.clone()).narrow(1, r, n - r));
+            }
+        }
+        out
+    }
+
     /// Runs registers + blocks + norm on already embedded tokens `[batch, k, dim]`.
     pub fn forward_tokens(&self, tokens: Tensor<3>) -> VitOutput {
         let [b, _, d] = tokens.dims();
@@ -522,6 +550,36 @@ mod tests {
         assert_eq!(out.registers.unwrap().dims(), [2, 2, 32]);
         let keep = index_tensor(&[vec![0, 5, 7], vec![11, 1, 2]], &device);
         assert_eq!(vit.forward(x, Some(keep)).patches.dims(), [2, 3, 32]);
+    }
+
+    /// The last hook equals the encoder's own output, and an earlier hook differs from it.
+    #[test]
+    fn hooks_end_at_the_encoder_output() {
+        let device = Device::flex();
+        let cfg = VitConfig::new([16, 12], 4)
+            .with_embed_dim(32)
+            .with_depth(3)
+            .with_num_heads(4)
+            .with_num_registers(1);
+        let vit = cfg.init(&device);
+        let x = Tensor::<5>::random(
+            [2, 1, 6, 16, 12],
+            burn::tensor::Distribution::Default,
+            &device,
+        );
+        let hooks = vit.forward_hooks(x.clone(), &[0, 2, 2]);
+        assert_eq!(hooks.len(), 3);
+        let full: Vec<f32> = vit
+            .forward(x, None)
+            .patches
+            .into_data()
+            .try_to_vec()
+            .unwrap();
+        let last: Vec<f32> = hooks[1].clone().into_data().try_to_vec().unwrap();
+        let first: Vec<f32> = hooks[0].clone().into_data().try_to_vec().unwrap();
+        assert_eq!(last.len(), full.len());
+        assert!(last.iter().zip(&full).all(|(a, b)| (a - b).abs() < 1e-5));
+        assert!(first.iter().zip(&full).any(|(a, b)| (a - b).abs() > 1e-3));
     }
 
     /// Per (token, feature): zero mean and unit variance over the batch, whatever the shared

@@ -1,0 +1,18 @@
+//! T1A: Sparsh's normal and shear field decoder on a frozen encoder, trained without field
+//! labels and scored against the simulator's ground-truth fields.
+//!
+//! - [`geometry`]: frame pixels → encoder input pixels (rotation, crop, resize).
+//! - [`data`]: frame pairs (never the fields) for training; ground truth and markers for scoring.
+//! - [`dpt`]: the DPT decoder with its normal and shear branches.
+//! - [`loss`]: the self-supervised photometric losses and the warp.
+//! - [`train`]: training on hooked tokens, self-supervised or supervised (the ceiling).
+//! - [`metrics`]: correlation, IoU, end-point and angular error per frame pair.
+//! - [`run`]: `sparsh fieldprobe train` and `eval`: decoders, references, tables, figures.
+
+pub mod data;
+pub mod dpt;
+pub mod geometry;
+pub mod loss;
+pub mod metrics;
+pub mod run;
+pub mod train;

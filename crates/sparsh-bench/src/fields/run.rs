@@ -1,0 +1,1085 @@
+//! `sparsh fieldprobe train` and `sparsh fieldprobe eval`.
+//!
+//! Train: the self-supervised decoder on the given frozen encoder, and the references the config
+//! asks for — the same decoder supervised by the ground-truth fields (the ceiling) and
+//! self-supervised decoders on randomly initialised encoders of the same architecture (several
+//! draws) — saved under `RUN/decoders/`, with `RUN/run.json`. Only the supervised ceiling reads
+//! fields while training.
+//!
+//! Eval: every decoder, the classical baselines (background-difference intensity for normal,
+//! Farnebäck optical flow for shear) and the markers where the sensor prints them, scored on the
+//! held-out sequences against the EXR ground truth: means over sequences with 95 % bootstrap
+//! intervals, `RUN/eval/fields.csv`, `fields.md` and the figure `fields_examples.png`; with
+//! `--pack`, the predicted contact region against a real Taxim pack's contact circles.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use burn::module::Module;
+use burn::prelude::*;
+use serde::{Deserialize, Serialize};
+use sha2::{Digest, Sha256};
+use sparsh_ssl::data::Stacking;
+use sparsh_ssl::recipe::Recipe;
+use sparsh_ssl::vit::Vit;
+
+use super::data::{FramePairs, GroundTruth, Pair, PairTruth, marker_flow};
+use super::dpt::FieldDecoderConfig;
+use super::geometry::InputGeometry;
+use super::loss::LossWeights;
+use super::metrics::{METRICS, best_threshold, higher_is_better, score_pair};
+use super::train::{
+    FieldModel, HookTokens, Prediction, Signal, Targets, TokenStats, TrainOptions, encode_hooks,
+    predict, train,
+};
+use crate::Error;
+use crate::fieldfig::{Panel, write_field_grid};
+use crate::flow::{FarnebackParams, farneback_flow};
+use crate::run::random_encoder;
+use crate::stats::{Spread, bootstrap_interval, rank};
+
+/// `[decoder]` of a field-probe config.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct DecoderSection {
+    /// Reassembled feature channels (official: 128).
+    pub channels: usize,
+    /// Flow bound of the shear branch (input pixels).
+    pub max_flow_px: f64,
+}
+
+impl Default for DecoderSection {
+    fn default() -> Self {
+        Self {
+            channels: 32,
+            max_flow_px: 4.0,
+        }
+    }
+}
+
+/// `[train]` of a field-probe config.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct TrainSection {
+    /// Optimizer steps per decoder.
+    pub steps: usize,
+    /// Pairs per step.
+    pub batch_size: usize,
+    /// Peak learning rate.
+    pub lr: f64,
+}
+
+impl Default for TrainSection {
+    fn default() -> Self {
+        Self {
+            steps: 600,
+            batch_size: 8,
+            lr: 1e-3,
+        }
+    }
+}
+
+/// `[references]` of a field-probe config.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ReferenceSection {
+    /// Train the supervised ceiling.
+    pub supervised: bool,
+    /// Self-supervised decoders on this many random encoders (recipe seeds 0, 1, …).
+    pub random_draws: usize,
+}
+
+impl Default for ReferenceSection {
+    fn default() -> Self {
+        Self {
+            supervised: true,
+            random_draws: 3,
+        }
+    }
+}
+
+/// A field-probe config (`tacbench/fields_*.toml`); paths are relative to the file.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FieldProbeConfig {
+    /// Seed of the decoders' draws and batch order.
+    #[serde(default)]
+    pub seed: u64,
+    /// The encoder's training recipe: architecture, input size and frame stacking.
+    pub recipe: PathBuf,
+    /// Every `frame_stride`-th frame of a sequence is a sample.
+    #[serde(default = "two")]
+    pub frame_stride: usize,
+    /// Bootstrap draws of the intervals.
+    #[serde(default = "thousand")]
+    pub bootstrap: usize,
+    /// Decoder size.
+    #[serde(default)]
+    pub decoder: DecoderSection,
+    /// Training schedule.
+    #[serde(default)]
+    pub train: TrainSection,
+    /// Loss weights.
+    #[serde(default)]
+    pub loss: LossWeights,
+    /// References trained beside the decoder.
+    #[serde(default)]
+    pub references: ReferenceSection,
+}
+
+fn two() -> usize {
+    2
+}
+
+fn thousand() -> usize {
+    1000
+}
+
+impl FieldProbeConfig {
+    /// Reads and checks a config; every error names the file and the key.
+    pub fn load(path: &Path) -> Result<Self, Error> {
+        let text = std::fs::read_to_string(path).map_err(|e| Error::file(path, e))?;
+        let mut cfg: FieldProbeConfig = toml::from_str(&text).map_err(|e| {
+            let msg = e.message().to_string();
+            match e.span() {
+                Some(span) => {
+                    let line = text[..span.start].lines().count().max(1);
+                    Error::file(path, format!("line {line}: {msg}"))
+                }
+                None => Error::file(path, msg),
+            }
+        })?;
+        if cfg.recipe.is_relative() {
+            cfg.recipe = path.parent().unwrap_or(Path::new("")).join(&cfg.recipe);
+        }
+        let bad = |field: &str, msg: &str| Err(Error::config(path, field, msg));
+        if cfg.frame_stride == 0 {
+            return bad("frame_stride", "must be at least 1");
+        }
+        if cfg.train.steps == 0 || cfg.train.batch_size == 0 {
+            return bad("train.steps / train.batch_size", "must be at least 1");
+        }
+        if !(cfg.train.lr.is_finite() && cfg.train.lr > 0.0) {
+            return bad("train.lr", "must be a positive number");
+        }
+        if cfg.decoder.channels < 4 || cfg.decoder.channels % 2 != 0 {
+            return bad("decoder.channels", "must be an even number ≥ 4");
+        }
+        if !(cfg.decoder.max_flow_px.is_finite() && cfg.decoder.max_flow_px > 0.0) {
+            return bad("decoder.max_flow_px", "must be a positive number");
+        }
+        let l = &cfg.loss;
+        if !(0.0..=1.0).contains(&l.ssim) {
+            return bad("loss.ssim", "must lie in [0, 1]");
+        }
+        for (name, v) in [
+            ("loss.normal_smoothness", l.normal_smoothness),
+            ("loss.normal_sparsity", l.normal_sparsity),
+            ("loss.shear_smoothness", l.shear_smoothness),
+            ("loss.slope_gain", l.slope_gain),
+        ] {
+            if !(v.is_finite() && v >= 0.0) {
+                return bad(name, "must be a finite number ≥ 0");
+            }
+        }
+        Ok(cfg)
+    }
+
+    /// The recipe, and the frame offset of its stacking (`I_t ⊕ I_{t−k}`).
+    fn recipe(&self, path: &Path) -> Result<(Recipe, usize), Error> {
+        let recipe = Recipe::load(&self.recipe).map_err(|e| Error::config(path, "recipe", e))?;
+        match recipe.stacking() {
+            Stacking::Channels(o) if o.len() == 2 && o[0] == 0 && o[1] > 0 => {
+                let k = o[1];
+                Ok((recipe, k))
+            }
+            other => Err(Error::config(
+                path,
+                "recipe",
+                format!(
+                    "{}: the field decoder reads image pairs I_t ⊕ I_(t−k); this recipe stacks \
+                     {other:?}",
+                    self.recipe.display()
+                ),
+            )),
+        }
+    }
+}
+
+/// One trained decoder of a run.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct DecoderRecord {
+    /// Name in tables (`self-supervised`, `supervised`, `random-k`).
+    pub name: String,
+    /// The encoder: `None` for the given weights, `Some(k)` for the random draw of seed k.
+    pub random_seed: Option<u64>,
+    /// Trained on the ground truth.
+    pub supervised: bool,
+    /// Loss of the first and last steps.
+    pub loss_first_last: [f64; 2],
+    /// Wall time of encoding and training (s).
+    pub seconds: f64,
+    /// File under `RUN/decoders/`.
+    pub file: String,
+}
+
+/// `RUN/run.json`.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct RunRecord {
+    /// The config as loaded (recipe path absolute).
+    pub config: FieldProbeConfig,
+    /// The config file.
+    pub config_path: PathBuf,
+    /// The encoder weights.
+    pub encoder: PathBuf,
+    /// Their sha256.
+    pub encoder_sha256: String,
+    /// The training data.
+    pub data: PathBuf,
+    /// Trained with `--quick`.
+    pub quick: bool,
+    /// Training pairs used.
+    pub train_pairs: usize,
+    /// The decoders.
+    pub decoders: Vec<DecoderRecord>,
+}
+
+/// Pairs kept by `--quick`: a few sequences' worth.
+fn quick_cap(pairs: &mut Vec<Pair>, n: usize) {
+    pairs.truncate(n);
+}
+
+fn absolute(p: &Path) -> PathBuf {
+    std::fs::canonicalize(p).unwrap_or_else(|_| p.to_path_buf())
+}
+
+fn sha256_file(path: &Path) -> Result<String, Error> {
+    let bytes = std::fs::read(path).map_err(|e| Error::file(path, e))?;
+    Ok(format!("{:x}", Sha256::digest(&bytes)))
+}
+
+fn decoder_config(cfg: &FieldProbeConfig, recipe: &Recipe) -> Result<FieldDecoderConfig, Error> {
+    let vit = recipe.encoder_config()?;
+    let [_, gh, gw] = vit.grid();
+    Ok(
+        FieldDecoderConfig::new(vit.embed_dim, [gh, gw], vit.img_size)
+            .with_channels(cfg.decoder.channels)
+            .with_max_flow_px(cfg.decoder.max_flow_px),
+    )
+}
+
+fn load_pretrained(recipe: &Recipe, weights: &Path) -> Result<Vit, Error> {
+    if !weights.is_file() {
+        return Err(Error::file(weights, "no such encoder file"));
+    }
+    sparsh_ssl::weights::load_encoder(random_encoder(recipe, 0)?, weights, None).map_err(|e| {
+        Error::file(
+            weights,
+            format!("does not fit the recipe's architecture: {e}"),
+        )
+    })
+}
+
+/// Loads the pairs a run uses (capped under `--quick`).
+fn load_pairs(
+    data: &Path,
+    recipe: &Recipe,
+    offset: usize,
+    cfg: &FieldProbeConfig,
+    quick: bool,
+) -> Result<FramePairs, Error> {
+    let size = recipe.encoder_config()?.img_size;
+    let mut pairs = FramePairs::load(data, size, offset, cfg.frame_stride)?;
+    if quick {
+        quick_cap(&mut pairs.train, 24);
+        quick_cap(&mut pairs.test, 12);
+    }
+    Ok(pairs)
+}
+
+/// `sparsh fieldprobe train`.
+pub fn train_run(
+    config_path: &Path,
+    encoder: &Path,
+    data: &Path,
+    out: &Path,
+    quick: bool,
+    log: &dyn Fn(&str),
+) -> Result<RunRecord, Error> {
+    let cfg = FieldProbeConfig::load(config_path)?;
+    let (recipe, offset) = cfg.recipe(config_path)?;
+    let pretrained = load_pretrained(&recipe, encoder)?;
+    let pairs = load_pairs(data, &recipe, offset, &cfg, quick)?;
+    let dec_cfg = decoder_config(&cfg, &recipe)?;
+    let steps = if quick { 3 } else { cfg.train.steps };
+    let draws = if quick {
+        cfg.references.random_draws.min(1)
+    } else {
+        cfg.references.random_draws
+    };
+    let targets = if cfg.references.supervised {
+        let truth = GroundTruth::new(&pairs);
+        let truths = pairs
+            .train
+            .iter()
+            .map(|&p| truth.pair(p))
+            .collect::<Result<Vec<_>, _>>()?;
+        Some(Targets::new(&truths))
+    } else {
+        None
+    };
+    log(&format!(
+        "field probe: {} training pairs of {} sequences, I_t ⊕ I_(t−{offset}), {steps} steps per decoder",
+        pairs.train.len(),
+        pairs.sequences.iter().filter(|s| !s.test).count()
+    ));
+    let mut plan: Vec<(String, Option<u64>, bool)> = vec![("self-supervised".into(), None, false)];
+    if cfg.references.supervised {
+        plan.push(("supervised".into(), None, true));
+    }
+    for k in 0..draws {
+        plan.push((format!("random-{k}"), Some(k as u64), false));
+    }
+    std::fs::create_dir_all(out.join("decoders")).map_err(|e| Error::file(out, e))?;
+    let mut pretrained_tokens: Option<HookTokens> = None;
+    let mut records = Vec::new();
+    for (name, random_seed, supervised) in plan {
+        let t0 = Instant::now();
+        let mut tokens = match random_seed {
+            None => pretrained_tokens
+                .get_or_insert_with(|| encode_hooks(&pretrained, &pairs, &pairs.train))
+                .clone(),
+            Some(k) => encode_hooks(&random_encoder(&recipe, k)?, &pairs, &pairs.train),
+        };
+        let stats = TokenStats::of(&tokens);
+        stats.apply(&mut tokens);
+        let opts = TrainOptions {
+            steps,
+            batch_size: cfg.train.batch_size,
+            lr: cfg.train.lr,
+            seed: cfg.seed,
+            weights: cfg.loss,
+        };
+        let every = (steps / 10).max(1);
+        let signal = match (&targets, supervised) {
+            (Some(t), true) => Signal::Fields(t),
+            _ => Signal::Frames {
+                data: &pairs,
+                pairs: &pairs.train,
+            },
+        };
+        let (model, curve) = train(&tokens, signal, &dec_cfg, opts, &|step, loss| {
+            if step % every == 0 || step + 1 == steps {
+                log(&format!(
+                    "  {name}: step {}/{steps}, loss {loss:.5}",
+                    step + 1
+                ));
+            }
+        });
+        let file = format!("{name}.bpk");
+        let path = out.join("decoders").join(&file);
+        let tmp = out.join("decoders").join(format!("{name}.bpk.tmp-write"));
+        model
+            .save_file(&tmp)
+            .map_err(|e| Error::file(&tmp, format!("{e:?}")))?;
+        std::fs::rename(&tmp, &path).map_err(|e| Error::file(&path, e))?;
+        let stats_path = out.join("decoders").join(format!("{name}.stats.json"));
+        sparsh_data::write_atomic(
+            &stats_path,
+            &serde_json::to_vec(&stats).expect("serializable"),
+        )
+        .map_err(|e| Error::file(&stats_path, e))?;
+        let seconds = t0.elapsed().as_secs_f64();
+        log(&format!("  {name}: {seconds:.0} s"));
+        records.push(DecoderRecord {
+            name,
+            random_seed,
+            supervised,
+            loss_first_last: [curve[0], *curve.last().expect("at least one step")],
+            seconds,
+            file,
+        });
+    }
+    let record = RunRecord {
+        config: FieldProbeConfig {
+            recipe: absolute(&cfg.recipe),
+            ..cfg
+        },
+        config_path: absolute(config_path),
+        encoder: absolute(encoder),
+        encoder_sha256: sha256_file(encoder)?,
+        data: absolute(data),
+        quick,
+        train_pairs: pairs.train.len(),
+        decoders: records,
+    };
+    let json = serde_json::to_vec_pretty(&record).expect("serializable");
+    sparsh_data::write_atomic(&out.join("run.json"), &json).map_err(|e| Error::file(out, e))?;
+    Ok(record)
+}
+
+/// A decoder ready to predict: its name, encoder, model and token statistics.
+type Trained = (String, Vit, FieldModel, TokenStats, bool);
+
+/// Reads the token statistics a decoder was trained with.
+fn read_stats(run: &Path, name: &str) -> Result<TokenStats, Error> {
+    let path = run.join("decoders").join(format!("{name}.stats.json"));
+    let text = std::fs::read_to_string(&path).map_err(|e| Error::file(&path, e))?;
+    serde_json::from_str(&text).map_err(|e| Error::file(&path, e))
+}
+
+/// Reads `RUN/run.json`.
+pub fn read_run(run: &Path) -> Result<RunRecord, Error> {
+    let path = run.join("run.json");
+    let text = std::fs::read_to_string(&path).map_err(|e| {
+        Error::file(
+            &path,
+            format!("{e} (train the decoders first: sparsh fieldprobe train … --out RUN)"),
+        )
+    })?;
+    serde_json::from_str(&text).map_err(|e| Error::file(&path, e))
+}
+
+/// Scores of one method over the test pairs.
+#[derive(Debug, Clone)]
+struct MethodScores {
+    name: String,
+    /// Per test pair, the metrics of [`METRICS`].
+    per_pair: Vec<[Option<f64>; 10]>,
+}
+
+/// One row of the results: a method's metric over a subset of test sequences.
+#[derive(Debug, Clone, Serialize)]
+pub struct ResultRow {
+    /// Test frames it covers: `all` or `markers` (the GelSight 2017 sequences).
+    pub subset: String,
+    /// Method.
+    pub method: String,
+    /// Metric name ([`METRICS`]).
+    pub metric: String,
+    /// Mean over sequences of the per-sequence mean.
+    pub mean: f64,
+    /// 95 % bootstrap interval over sequences.
+    pub ci_low: f64,
+    /// Upper end.
+    pub ci_high: f64,
+    /// Sequences with a value.
+    pub sequences: usize,
+}
+
+/// Per-sequence means of metric `k`, from `rows` (indices into the test pairs).
+fn sequence_means(
+    pairs: &[Pair],
+    scores: &[[Option<f64>; 10]],
+    k: usize,
+    rows: &[usize],
+) -> Vec<(usize, f64)> {
+    let mut by_seq: std::collections::BTreeMap<usize, (f64, usize)> = Default::default();
+    for &i in rows {
+        if let Some(v) = scores[i][k].filter(|v| v.is_finite()) {
+            let e = by_seq.entry(pairs[i].sequence).or_default();
+            e.0 += v;
+            e.1 += 1;
+        }
+    }
+    by_seq
+        .into_iter()
+        .map(|(s, (sum, n))| (s, sum / n as f64))
+        .collect()
+}
+
+fn summarize(
+    subset: &str,
+    method: &MethodScores,
+    pairs: &[Pair],
+    rows: &[usize],
+    draws: usize,
+    seed: u64,
+) -> Vec<ResultRow> {
+    (0..METRICS.len())
+        .filter_map(|k| {
+            let means = sequence_means(pairs, &method.per_pair, k, rows);
+            if means.is_empty() {
+                return None;
+            }
+            let values: Vec<f64> = means.iter().map(|m| m.1).collect();
+            let groups: Vec<Vec<usize>> = (0..values.len()).map(|i| vec![i]).collect();
+            let mean = values.iter().sum::<f64>() / values.len() as f64;
+            let (lo, hi) = bootstrap_interval(&groups, draws, seed, |r| {
+                r.iter().map(|&i| values[i]).sum::<f64>() / r.len() as f64
+            });
+            Some(ResultRow {
+                subset: subset.into(),
+                method: method.name.clone(),
+                metric: METRICS[k].into(),
+                mean,
+                ci_low: lo,
+                ci_high: hi,
+                sequences: values.len(),
+            })
+        })
+        .collect()
+}
+
+/// The sign of a self-supervised normal map is free (its loss sees slopes only); the gel at
+/// rest is a map's most common value and belongs at its low end. True when, over `maps` (the
+/// training frames, no labels read), the median sits above the mean: the background is high and
+/// the contacts dip below it.
+fn background_above_contact(maps: &[Vec<f32>]) -> bool {
+    let lean: f64 = maps
+        .iter()
+        .map(|m| {
+            let mut v = m.clone();
+            v.sort_by(f32::total_cmp);
+            let median = v[v.len() / 2] as f64;
+            let mean = v.iter().map(|&x| x as f64).sum::<f64>() / v.len() as f64;
+            median - mean
+        })
+        .sum();
+    lean > 0.0
+}
+
+/// `D → 1 − D`.
+fn invert(map: &mut [f32]) {
+    map.iter_mut().for_each(|v| *v = 1.0 - *v);
+}
+
+/// Normal map of the classical baseline: the background difference's magnitude
+/// `‖I_t − bg‖` over the colour channels (the frames are stored as `½ + I − bg`).
+fn intensity_map(frame: &[f32], n: usize) -> Vec<f32> {
+    (0..n)
+        .map(|i| {
+            (0..3)
+                .map(|c| (frame[c * n + i] - 0.5).powi(2))
+                .sum::<f32>()
+                .sqrt()
+        })
+        .collect()
+}
+
+fn gray(frame: &[f32], n: usize) -> Vec<f32> {
+    (0..n)
+        .map(|i| (frame[i] + frame[n + i] + frame[2 * n + i]) / 3.0)
+        .collect()
+}
+
+/// Contact circle of a normal map: the pixels at or above `threshold`, their centroid and the
+/// radius of a disc of their area (input pixels); `None` when no pixel qualifies.
+fn contact_circle(map: &[f32], width: usize, threshold: f32) -> Option<([f64; 2], f64)> {
+    let (mut n, mut sx, mut sy) = (0usize, 0.0, 0.0);
+    for (i, &v) in map.iter().enumerate() {
+        if v >= threshold {
+            n += 1;
+            sx += (i % width) as f64;
+            sy += (i / width) as f64;
+        }
+    }
+    (n > 0).then(|| {
+        (
+            [sx / n as f64, sy / n as f64],
+            (n as f64 / std::f64::consts::PI).sqrt(),
+        )
+    })
+}
+
+/// What `eval` found.
+#[derive(Debug, Clone)]
+pub struct EvalSummary {
+    /// Every result row.
+    pub rows: Vec<ResultRow>,
+    /// The Markdown report.
+    pub markdown: String,
+}
+
+/// `sparsh fieldprobe eval`.
+pub fn eval_run(
+    run: &Path,
+    data: &Path,
+    packs: &[PathBuf],
+    log: &dyn Fn(&str),
+) -> Result<EvalSummary, Error> {
+    let record = read_run(run)?;
+    let cfg = &record.config;
+    let (recipe, offset) = cfg.recipe(&run.join("run.json"))?;
+    let pairs = load_pairs(data, &recipe, offset, cfg, record.quick)?;
+    let [h, w] = pairs.size();
+    let n = h * w;
+    let truth = GroundTruth::new(&pairs);
+    log(&format!(
+        "field probe eval: {} held-out pairs of {} sequences; thresholds from {} training pairs",
+        pairs.test.len(),
+        pairs.sequences.iter().filter(|s| s.test).count(),
+        pairs.train.len()
+    ));
+    let test_truth = pairs
+        .test
+        .iter()
+        .map(|&p| truth.pair(p))
+        .collect::<Result<Vec<_>, _>>()?;
+    let train_truth = pairs
+        .train
+        .iter()
+        .map(|&p| truth.pair(p))
+        .collect::<Result<Vec<_>, _>>()?;
+    let in_contact: Vec<usize> = (0..train_truth.len())
+        .filter(|&i| train_truth[i].in_contact())
+        .collect();
+    let threshold_for = |train_maps: &[Vec<f32>]| {
+        let maps: Vec<&[f32]> = in_contact
+            .iter()
+            .map(|&i| train_maps[i].as_slice())
+            .collect();
+        let masks: Vec<&[bool]> = in_contact
+            .iter()
+            .map(|&i| train_truth[i].contact.as_slice())
+            .collect();
+        best_threshold(&maps, &masks)
+    };
+    let score_all = |normals: Option<&[Vec<f32>]>, flows: Option<&[Vec<[f32; 2]>]>, thr: f32| {
+        (0..pairs.test.len())
+            .map(|i| {
+                score_pair(
+                    normals.map(|m| m[i].as_slice()),
+                    flows.map(|f| f[i].as_slice()),
+                    &test_truth[i],
+                    thr,
+                )
+            })
+            .collect::<Vec<_>>()
+    };
+    let pretrained = load_pretrained(&recipe, &record.encoder)?;
+    let dec_cfg = decoder_config(cfg, &recipe)?;
+    let mut methods: Vec<MethodScores> = Vec::new();
+    let mut examples: Vec<(String, Vec<Prediction>)> = Vec::new();
+    let mut thresholds: Vec<(String, f32)> = Vec::new();
+    let mut orientation: Vec<String> = Vec::new();
+    let mut models: Vec<Trained> = Vec::new();
+    for d in &record.decoders {
+        let vit = match d.random_seed {
+            None => pretrained.clone(),
+            Some(k) => random_encoder(&recipe, k)?,
+        };
+        let path = run.join("decoders").join(&d.file);
+        let model = FieldModel {
+            decoder: dec_cfg.init(&Device::flex()),
+            shading: super::loss::Shading::new(&Device::flex()),
+        }
+        .try_load_file(&path)
+        .map_err(|e| Error::file(&path, format!("{e:?}")))?;
+        let stats = read_stats(run, &d.name)?;
+        let t0 = Instant::now();
+        let tokens_of = |list: &[Pair]| {
+            let mut t = encode_hooks(&vit, &pairs, list);
+            stats.apply(&mut t);
+            t
+        };
+        let train_pred = predict(&model, &tokens_of(&pairs.train));
+        let mut test_pred = predict(&model, &tokens_of(&pairs.test));
+        let mut train_maps: Vec<Vec<f32>> = train_pred.into_iter().map(|p| p.normal).collect();
+        let flipped = background_above_contact(&train_maps);
+        if flipped {
+            train_maps.iter_mut().for_each(|m| invert(m));
+            test_pred.iter_mut().for_each(|p| invert(&mut p.normal));
+            orientation.push(d.name.clone());
+        }
+        let thr = threshold_for(&train_maps);
+        let normals: Vec<Vec<f32>> = test_pred.iter().map(|p| p.normal.clone()).collect();
+        let flows: Vec<Vec<[f32; 2]>> = test_pred.iter().map(|p| p.flow.clone()).collect();
+        methods.push(MethodScores {
+            name: d.name.clone(),
+            per_pair: score_all(Some(&normals), Some(&flows), thr),
+        });
+        log(&format!(
+            "  {}: scored in {:.0} s (contact threshold {thr:.3})",
+            d.name,
+            t0.elapsed().as_secs_f64()
+        ));
+        thresholds.push((d.name.clone(), thr));
+        examples.push((d.name.clone(), test_pred));
+        models.push((d.name.clone(), vit, model, stats, flipped));
+    }
+    // classical baselines
+    let t0 = Instant::now();
+    let intensity = |list: &[Pair]| -> Vec<Vec<f32>> {
+        list.iter()
+            .map(|&p| intensity_map(pairs.frames(p).0, n))
+            .collect()
+    };
+    let train_intensity = intensity(&pairs.train);
+    let intensity_thr = threshold_for(&train_intensity);
+    let test_intensity = intensity(&pairs.test);
+    let params = FarnebackParams::default();
+    let farneback: Vec<Vec<[f32; 2]>> = pairs
+        .test
+        .iter()
+        .map(|&p| {
+            let (now, before) = pairs.frames(p);
+            farneback_flow(&gray(before, n), &gray(now, n), h, w, &params)
+        })
+        .collect();
+    let zero_flow = vec![vec![[0.0f32; 2]; n]; pairs.test.len()];
+    methods.push(MethodScores {
+        name: "zero flow".into(),
+        per_pair: score_all(None, Some(&zero_flow), 0.5),
+    });
+    methods.push(MethodScores {
+        name: "classical".into(),
+        per_pair: score_all(Some(&test_intensity), Some(&farneback), intensity_thr),
+    });
+    thresholds.push(("classical".into(), intensity_thr));
+    log(&format!(
+        "  classical (intensity, Farnebäck): {:.0} s",
+        t0.elapsed().as_secs_f64()
+    ));
+    // markers, where printed
+    let marker_rows: Vec<usize> = (0..pairs.test.len())
+        .filter(|&i| !pairs.sequences[pairs.test[i].sequence].markers_px[0].is_empty())
+        .collect();
+    if !marker_rows.is_empty() {
+        let flows: Vec<Vec<[f32; 2]>> = pairs
+            .test
+            .iter()
+            .map(|&p| marker_flow(&pairs, p).unwrap_or_else(|| vec![[0.0; 2]; n]))
+            .collect();
+        methods.push(MethodScores {
+            name: "markers".into(),
+            per_pair: score_all(None, Some(&flows), 0.5),
+        });
+    }
+    // rows
+    let all_rows: Vec<usize> = (0..pairs.test.len()).collect();
+    let mut rows = Vec::new();
+    for m in &methods {
+        if m.name != "markers" {
+            rows.extend(summarize(
+                "all",
+                m,
+                &pairs.test,
+                &all_rows,
+                cfg.bootstrap,
+                cfg.seed,
+            ));
+        }
+        if !marker_rows.is_empty() {
+            rows.extend(summarize(
+                "markers",
+                m,
+                &pairs.test,
+                &marker_rows,
+                cfg.bootstrap,
+                cfg.seed,
+            ));
+        }
+    }
+    let out = run.join("eval");
+    std::fs::create_dir_all(&out).map_err(|e| Error::file(&out, e))?;
+    write_csv(&out.join("fields.csv"), &rows)?;
+    let mut markdown = markdown_tables(&rows, &record);
+    markdown.push_str(&format!(
+        "\nContact thresholds (chosen on {} training pairs in contact): {}\n",
+        in_contact.len(),
+        thresholds
+            .iter()
+            .map(|(m, t)| format!("{m} {t:.3}"))
+            .collect::<Vec<_>>()
+            .join(", ")
+    ));
+    if !orientation.is_empty() {
+        markdown.push_str(&format!(
+            "\nNormal maps read as 1 − D (their background sat above their contacts on the \
+             training frames): {}\n",
+            orientation.join(", ")
+        ));
+    }
+    // figure
+    let figure = out.join("fields_examples.png");
+    write_examples(
+        &figure,
+        &pairs,
+        &test_truth,
+        &examples,
+        &test_intensity,
+        &farneback,
+    )?;
+    markdown.push_str(&format!("\nFigure: {}\n", figure.display()));
+    // real packs
+    for pack in packs {
+        markdown.push_str(&pack_report(
+            pack,
+            &models,
+            &thresholds,
+            intensity_thr,
+            offset,
+            [h, w],
+        )?);
+    }
+    sparsh_data::write_atomic(&out.join("fields.md"), markdown.as_bytes())
+        .map_err(|e| Error::file(&out, e))?;
+    Ok(EvalSummary { rows, markdown })
+}
+
+fn write_csv(path: &Path, rows: &[ResultRow]) -> Result<(), Error> {
+    let mut w = csv::Writer::from_writer(Vec::new());
+    for r in rows {
+        w.serialize(r).map_err(|e| Error::file(path, e))?;
+    }
+    let bytes = w.into_inner().map_err(|e| Error::file(path, e))?;
+    sparsh_data::write_atomic(path, &bytes).map_err(|e| Error::file(path, e))
+}
+
+/// Column headings of the tables, in [`METRICS`] order.
+const HEADINGS: [&str; 10] = [
+    "r(p)",
+    "ρ(p)",
+    "r(−u_z)",
+    "ρ(−u_z)",
+    "contact IoU",
+    "EPE contact (px)",
+    "EPE all (px)",
+    "AE contact (°)",
+    "AE all (°)",
+    "r(‖F‖, ‖q‖)",
+];
+
+fn markdown_tables(rows: &[ResultRow], record: &RunRecord) -> String {
+    let mut md = String::new();
+    let randoms: Vec<String> = record
+        .decoders
+        .iter()
+        .filter(|d| d.random_seed.is_some())
+        .map(|d| d.name.clone())
+        .collect();
+    for subset in ["all", "markers"] {
+        let in_subset: Vec<&ResultRow> = rows.iter().filter(|r| r.subset == subset).collect();
+        if in_subset.is_empty() {
+            continue;
+        }
+        let mut methods: Vec<String> = Vec::new();
+        for r in &in_subset {
+            if !methods.contains(&r.method) {
+                methods.push(r.method.clone());
+            }
+        }
+        let title = if subset == "all" {
+            "All held-out sequences"
+        } else {
+            "Held-out sequences of the sensor with markers"
+        };
+        md.push_str(&format!(
+            "\n{title} (means over sequences, 95 % bootstrap interval)\n\n| method | {} |\n|---|{}\n",
+            HEADINGS.join(" | "),
+            "---|".repeat(HEADINGS.len())
+        ));
+        let get = |m: &str, k: usize| {
+            in_subset
+                .iter()
+                .find(|r| r.method == m && r.metric == METRICS[k])
+        };
+        for m in &methods {
+            let cells: Vec<String> = (0..METRICS.len())
+                .map(|k| match get(m, k) {
+                    Some(r) => format!("{:.3} [{:.3}, {:.3}]", r.mean, r.ci_low, r.ci_high),
+                    None => "—".into(),
+                })
+                .collect();
+            md.push_str(&format!("| {m} | {} |\n", cells.join(" | ")));
+        }
+        if !randoms.is_empty() && methods.iter().any(|m| m == "self-supervised") {
+            let cells: Vec<String> = (0..METRICS.len())
+                .map(|k| {
+                    let draws: Vec<f64> = randoms
+                        .iter()
+                        .filter_map(|r| get(r, k).map(|x| x.mean))
+                        .collect();
+                    match (get("self-supervised", k), draws.is_empty()) {
+                        (Some(s), false) => {
+                            let sp = Spread::of(&draws);
+                            format!(
+                                "{:.3} ± {:.3}; rank {}/{}",
+                                sp.mean,
+                                sp.sd,
+                                rank(s.mean, &draws, higher_is_better(k)),
+                                draws.len() + 1
+                            )
+                        }
+                        _ => "—".into(),
+                    }
+                })
+                .collect();
+            md.push_str(&format!(
+                "| random draws: mean ± sd; self-supervised's rank | {} |\n",
+                cells.join(" | ")
+            ));
+        }
+    }
+    md
+}
+
+/// The example figure: for a press, a slide and a twist (the held-out pair with the largest
+/// ground-truth motion in contact among sequences of that motion), ground truth beside the
+/// decoders and the classical baseline.
+fn write_examples(
+    path: &Path,
+    pairs: &FramePairs,
+    truths: &[PairTruth],
+    decoders: &[(String, Vec<Prediction>)],
+    intensity: &[Vec<f32>],
+    farneback: &[Vec<[f32; 2]>],
+) -> Result<(), Error> {
+    let [h, w] = pairs.size();
+    let motion = |i: usize| -> f64 {
+        let t = &truths[i];
+        t.flow_px
+            .iter()
+            .zip(&t.contact)
+            .filter(|(_, c)| **c)
+            .map(|(f, _)| (f[0] as f64).hypot(f[1] as f64))
+            .sum::<f64>()
+            + t.contact.iter().filter(|c| **c).count() as f64 * 1e-3
+    };
+    let mut row_labels = Vec::new();
+    let mut rows = Vec::new();
+    for kind in ["press", "slide", "twist"] {
+        let best = (0..pairs.test.len())
+            .filter(|&i| {
+                let fam = &pairs.sequences[pairs.test[i].sequence].family;
+                fam.ends_with(kind) && truths[i].in_contact()
+            })
+            .max_by(|&a, &b| motion(a).total_cmp(&motion(b)));
+        let Some(i) = best else { continue };
+        let fam = &pairs.sequences[pairs.test[i].sequence].family;
+        row_labels.push(format!("{fam}, frame {}", pairs.test[i].t));
+        let panel = |title: &str, normal: &[f32], flow: &[[f32; 2]]| Panel {
+            title: title.into(),
+            height: h,
+            width: w,
+            normal: normal.to_vec(),
+            shear_px: Some(flow.to_vec()),
+        };
+        let mut row = vec![panel(
+            "ground truth (p, Δu)",
+            &truths[i].pressure_kpa,
+            &truths[i].flow_px,
+        )];
+        for (name, preds) in decoders
+            .iter()
+            .filter(|(n, _)| n == "self-supervised" || n == "supervised" || n == "random-0")
+        {
+            row.push(panel(name, &preds[i].normal, &preds[i].flow));
+        }
+        row.push(panel("classical", &intensity[i], &farneback[i]));
+        rows.push(row);
+    }
+    if rows.is_empty() {
+        return Ok(());
+    }
+    write_field_grid(path, &row_labels, &rows).map_err(|e| Error::file(path, e))
+}
+
+/// The contact region of each decoder's normal map (and of the background difference) on a
+/// real Taxim pack's frames against the pack's contact circles, as a Markdown table.
+fn pack_report(
+    pack_path: &Path,
+    models: &[Trained],
+    thresholds: &[(String, f32)],
+    intensity_thr: f32,
+    offset: usize,
+    size: [usize; 2],
+) -> Result<String, Error> {
+    let _ = offset;
+    let pack = sparsh_optics::pack::CalibrationPack::read(pack_path)
+        .map_err(|e| Error::file(pack_path, format!("{}: {}", e.field, e.message)))?;
+    let (fw, fh) = pack.background.dimensions();
+    let g = InputGeometry::new(fw as usize, fh as usize, size);
+    let bg = &pack.background;
+    let pre =
+        |img| sparsh_ssl::data::preprocess(img, bg, size).map_err(|e| Error::file(pack_path, e));
+    let rest = pre(bg)?;
+    let frames = pack.frames.iter().map(pre).collect::<Result<Vec<_>, _>>()?;
+    let [h, w] = size;
+    let n = h * w;
+    // one pair per frame: the contact frame against the no-contact frame
+    let input = |vit: &Vit| -> HookTokens {
+        let device = Device::flex();
+        let hooks = super::dpt::hook_blocks(vit.blocks.len());
+        let mut values = Vec::new();
+        let mut t = 0;
+        for chunk in frames.chunks(16) {
+            let x: Vec<f32> = chunk
+                .iter()
+                .flat_map(|f| f.iter().chain(rest.iter()).copied())
+                .collect();
+            let maps = vit.forward_hooks(
+                Tensor::<1>::from_floats(x.as_slice(), &device).reshape([chunk.len(), 1, 6, h, w]),
+                &hooks,
+            );
+            t = maps[0].dims()[1];
+            values.extend(
+                Tensor::stack::<4>(maps, 1)
+                    .into_data()
+                    .convert::<f32>()
+                    .try_into_vec::<f32>()
+                    .expect("f32"),
+            );
+        }
+        HookTokens {
+            values,
+            dims: [frames.len(), hooks.len(), t, vit.dim()],
+        }
+    };
+    let score = |maps: &[Vec<f32>], thr: f32| -> (f64, f64, usize) {
+        let mut centre = Vec::new();
+        let mut radius = Vec::new();
+        let mut missed = 0;
+        for (k, m) in maps.iter().enumerate() {
+            match contact_circle(m, w, thr) {
+                Some((c, r)) => {
+                    let c = g.point_to_frame(c);
+                    let r = r / g.pixels_per_frame_pixel();
+                    let t = pack.centers_px[k];
+                    centre.push((c[0] - t[0]).hypot(c[1] - t[1]));
+                    radius.push(100.0 * (r - pack.radii_px[k]).abs() / pack.radii_px[k]);
+                }
+                None => missed += 1,
+            }
+        }
+        let median = |mut v: Vec<f64>| {
+            if v.is_empty() {
+                return f64::NAN;
+            }
+            v.sort_by(f64::total_cmp);
+            crate::stats::quantile(&v, 0.5)
+        };
+        (median(centre), median(radius), missed)
+    };
+    let mut md = format!(
+        "\nReal frames: {} ({} frames, {}×{}): median contact-centre error (frame px) and \
+         radius error (%) of the thresholded normal map against the pack's circles\n\n\
+         | method | centre error (px) | radius error (%) | frames without a region |\n|---|---|---|---|\n",
+        pack_path.display(),
+        frames.len(),
+        fw,
+        fh
+    );
+    for (name, vit, model, stats, flipped) in models {
+        let thr = thresholds
+            .iter()
+            .find(|(m, _)| m == name)
+            .map_or(0.5, |t| t.1);
+        let mut tokens = input(vit);
+        stats.apply(&mut tokens);
+        let mut maps: Vec<Vec<f32>> = predict(model, &tokens)
+            .into_iter()
+            .map(|p| p.normal)
+            .collect();
+        if *flipped {
+            maps.iter_mut().for_each(|m| invert(m));
+        }
+        let (c, r, missed) = score(&maps, thr);
+        md.push_str(&format!("| {name} | {c:.1} | {r:.1} | {missed} |\n"));
+    }
+    let maps: Vec<Vec<f32>> = frames.iter().map(|f| intensity_map(f, n)).collect();
+    let (c, r, missed) = score(&maps, intensity_thr);
+    md.push_str(&format!("| classical | {c:.1} | {r:.1} | {missed} |\n"));
+    Ok(md)
+}

@@ -1,0 +1,45 @@
+//! `sparsh fieldprobe train | eval`: T1A on a frozen encoder (`sparsh_bench::fields`).
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{Result, bail};
+
+fn log(line: &str) {
+    eprintln!("{line}");
+}
+
+/// Trains the decoders of a run into `out` (a new or empty directory).
+pub fn train(config: &Path, encoder: &Path, data: &Path, out: &Path, quick: bool) -> Result<()> {
+    if out.join("run.json").exists() {
+        bail!(
+            "{}: holds a field-probe run already (choose another --out)",
+            out.display()
+        );
+    }
+    let start = Instant::now();
+    let record = sparsh_bench::fields::run::train_run(config, encoder, data, out, quick, &log)?;
+    println!(
+        "{}: {} decoders trained on {} pairs in {:.0} s; score them with: sparsh fieldprobe eval --run {} --data {}",
+        out.display(),
+        record.decoders.len(),
+        record.train_pairs,
+        start.elapsed().as_secs_f64(),
+        out.display(),
+        data.display()
+    );
+    Ok(())
+}
+
+/// Scores a run and prints the Markdown report.
+pub fn eval(run: &Path, data: &Path, packs: &[PathBuf]) -> Result<()> {
+    let start = Instant::now();
+    let summary = sparsh_bench::fields::run::eval_run(run, data, packs, &log)?;
+    println!("{}", summary.markdown);
+    eprintln!(
+        "{}: scored in {:.0} s",
+        run.join("eval").display(),
+        start.elapsed().as_secs_f64()
+    );
+    Ok(())
+}

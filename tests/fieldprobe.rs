@@ -1,0 +1,306 @@
+//! `sparsh fieldprobe train | eval` end to end on a small generated dataset with fields: the
+//! decoders, the references, the report files; training reads no field; one-line errors.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+/// DIGIT (markerless) and GelSight 2017 (markers) presses and slides at 160 × 120 with every
+/// field at stride 2; held-out cylinders.
+const DATA_SCENE: &str = r#"
+seed = 9
+[output]
+fields = ["p", "qx", "qy", "ux", "uy", "uz", "contact", "slip"]
+[[family]]
+name = "digit_slide"
+sequences = 6
+frames_per_sequence = 10
+solver = "halfspace"
+mechanics_stride = 2
+mechanics_margin_mm = 3.0
+[family.sensor]
+preset = "digit"
+width_px = 160
+height_px = 120
+mm_per_px = 0.1064
+[[family.indenters]]
+shape = "sphere"
+radius_mm = [3.0, 6.0]
+[[family.indenters]]
+shape = "cylinder"
+radius_mm = [1.5, 2.5]
+split = "test"
+[family.motion]
+kind = "press_slide"
+depth_mm = [0.3, 0.8]
+slide_mm = [0.5, 2.0]
+[[family]]
+name = "gs2017_slide"
+sequences = 4
+frames_per_sequence = 10
+solver = "halfspace"
+mechanics_stride = 2
+mechanics_margin_mm = 3.0
+[family.sensor]
+preset = "gelsight2017"
+width_px = 160
+height_px = 120
+mm_per_px = 0.118
+[[family.indenters]]
+shape = "sphere"
+radius_mm = [3.0, 6.0]
+[[family.indenters]]
+shape = "cylinder"
+radius_mm = [1.5, 2.5]
+split = "test"
+[family.motion]
+kind = "press_slide"
+depth_mm = [0.3, 0.8]
+slide_mm = [0.5, 2.0]
+"#;
+
+/// A ViT of two blocks on the CPU recipes' input.
+const RECIPE: &str = r#"
+objective = "mae"
+seed = 0
+[encoder]
+size = "tiny"
+img_size = [96, 72]
+patch_size = 8
+depth = 2
+[optim]
+steps = 10
+batch_size = 8
+"#;
+
+const CONFIG: &str = r#"
+recipe = "recipe.toml"
+bootstrap = 50
+[decoder]
+channels = 8
+[references]
+supervised = true
+random_draws = 2
+"#;
+
+fn sparsh(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_sparsh"))
+        .args(args)
+        .output()
+        .expect("sparsh runs")
+}
+
+fn stderr(out: &Output) -> String {
+    String::from_utf8_lossy(&out.stderr).into_owned()
+}
+
+/// A user error: non-zero exit, one line on stderr naming what is wrong, no panic.
+fn assert_user_error(out: &Output, needle: &str) {
+    let err = stderr(out);
+    assert!(!out.status.success(), "should fail: {err}");
+    assert!(!err.contains("panicked"), "{err}");
+    assert_eq!(err.trim_end().lines().count(), 1, "one line: {err}");
+    assert!(err.contains(needle), "expected `{needle}` in: {err}");
+}
+
+/// Writes the recipe, weights of its architecture, the config and the dataset into `dir`.
+fn setup(dir: &Path) -> PathBuf {
+    std::fs::write(dir.join("recipe.toml"), RECIPE).unwrap();
+    std::fs::write(dir.join("fields.toml"), CONFIG).unwrap();
+    let recipe = sparsh_ssl::recipe::Recipe::parse(RECIPE).unwrap();
+    let vit = sparsh_bench::run::random_encoder(&recipe, 5).unwrap();
+    sparsh_ssl::weights::save_encoder(&vit, &dir.join("weights.safetensors")).unwrap();
+    let scene = dir.join("data.toml");
+    std::fs::write(&scene, DATA_SCENE).unwrap();
+    let data = dir.join("data");
+    let out = sparsh(&[
+        "generate",
+        scene.to_str().unwrap(),
+        "--out",
+        data.to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    data
+}
+
+fn train(dir: &Path, config: &str, data: &Path, out: &str) -> Output {
+    sparsh(&[
+        "fieldprobe",
+        "train",
+        "--config",
+        dir.join(config).to_str().unwrap(),
+        "--encoder",
+        dir.join("weights.safetensors").to_str().unwrap(),
+        "--data",
+        data.to_str().unwrap(),
+        "--out",
+        dir.join(out).to_str().unwrap(),
+        "--quick",
+    ])
+}
+
+#[test]
+fn fieldprobe_trains_without_fields_and_scores_against_them() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    let data = setup(dir);
+
+    let out = train(dir, "fields.toml", &data, "run");
+    assert!(out.status.success(), "{}", stderr(&out));
+    let run = dir.join("run");
+    for name in ["self-supervised", "supervised", "random-0"] {
+        assert!(
+            run.join("decoders").join(format!("{name}.bpk")).is_file(),
+            "{name}"
+        );
+        assert!(
+            run.join("decoders")
+                .join(format!("{name}.stats.json"))
+                .is_file()
+        );
+    }
+    // a second train into the same run is refused
+    assert_user_error(
+        &train(dir, "fields.toml", &data, "run"),
+        "holds a field-probe run",
+    );
+
+    let out = sparsh(&[
+        "fieldprobe",
+        "eval",
+        "--run",
+        run.to_str().unwrap(),
+        "--data",
+        data.to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let md = String::from_utf8_lossy(&out.stdout);
+    for method in [
+        "self-supervised",
+        "supervised",
+        "random-0",
+        "zero flow",
+        "classical",
+        "markers",
+    ] {
+        assert!(
+            md.contains(&format!("| {method} |")),
+            "no {method} row: {md}"
+        );
+    }
+    // fields.csv: plain CSV, header first, values where they apply and in range
+    let mut reader = csv::Reader::from_path(run.join("eval/fields.csv")).unwrap();
+    let header: Vec<String> = reader.headers().unwrap().iter().map(String::from).collect();
+    assert_eq!(
+        header,
+        [
+            "subset",
+            "method",
+            "metric",
+            "mean",
+            "ci_low",
+            "ci_high",
+            "sequences"
+        ]
+    );
+    let rows: Vec<csv::StringRecord> = reader.records().map(|r| r.unwrap()).collect();
+    for r in &rows {
+        let v: f64 = r[3].parse().unwrap();
+        assert!(v.is_finite(), "{r:?}");
+        if r[2].starts_with("pearson") || r[2].starts_with("spearman") {
+            assert!((-1.0..=1.0).contains(&v), "{r:?}");
+        }
+        if &r[2] == "contact_iou" {
+            assert!((0.0..=1.0).contains(&v), "{r:?}");
+        }
+    }
+    // the markers score only the sensor that prints them, and only the flow
+    assert!(
+        rows.iter()
+            .any(|r| &r[0] == "markers" && &r[1] == "markers")
+    );
+    assert!(!rows.iter().any(|r| &r[0] == "all" && &r[1] == "markers"));
+    assert!(
+        !rows
+            .iter()
+            .any(|r| &r[1] == "markers" && r[2].contains("pearson_p"))
+    );
+    assert!(run.join("eval/fields_examples.png").is_file());
+
+    // training reads no field: without fields/ the self-supervised decoders still train, the
+    // supervised ceiling is a one-line error naming the missing file
+    let bare = dir.join("bare");
+    copy_dir(&data, &bare, "fields");
+    let selfsup = CONFIG.replace("supervised = true", "supervised = false");
+    std::fs::write(dir.join("selfsup.toml"), selfsup).unwrap();
+    let out = train(dir, "selfsup.toml", &bare, "run_bare");
+    assert!(out.status.success(), "{}", stderr(&out));
+    assert_user_error(
+        &train(dir, "fields.toml", &bare, "run_bare_supervised"),
+        "no such field file",
+    );
+}
+
+/// Copies `from` to `to`, leaving out the entry `skip`.
+fn copy_dir(from: &Path, to: &Path, skip: &str) {
+    std::fs::create_dir_all(to).unwrap();
+    for entry in std::fs::read_dir(from).unwrap() {
+        let entry = entry.unwrap();
+        let (src, name) = (entry.path(), entry.file_name());
+        if name == skip {
+            continue;
+        }
+        if src.is_dir() {
+            copy_dir(&src, &to.join(&name), skip);
+        } else {
+            std::fs::copy(&src, to.join(&name)).unwrap();
+        }
+    }
+}
+
+#[test]
+fn bad_field_probe_inputs_are_one_line_errors() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    std::fs::write(dir.join("recipe.toml"), RECIPE).unwrap();
+    let recipe = sparsh_ssl::recipe::Recipe::parse(RECIPE).unwrap();
+    let vit = sparsh_bench::run::random_encoder(&recipe, 5).unwrap();
+    sparsh_ssl::weights::save_encoder(&vit, &dir.join("weights.safetensors")).unwrap();
+    let empty = dir.join("empty");
+    std::fs::create_dir_all(&empty).unwrap();
+    let cases = [
+        ("unknown = 1\n", "unknown field"),
+        ("[train]\nsteps = 0\n", "train.steps"),
+        ("[decoder]\nchannels = 3\n", "decoder.channels"),
+        ("[loss]\nssim = 1.5\n", "loss.ssim"),
+    ];
+    for (extra, needle) in cases {
+        std::fs::write(
+            dir.join("bad.toml"),
+            format!("recipe = \"recipe.toml\"\n{extra}"),
+        )
+        .unwrap();
+        assert_user_error(&train(dir, "bad.toml", &empty, "r"), needle);
+    }
+    // a clip recipe (V-JEPA's stacking) cannot feed an image-pair decoder
+    let clips = RECIPE.replace("objective = \"mae\"", "objective = \"vjepa\"");
+    std::fs::write(dir.join("clips.toml"), clips).unwrap();
+    std::fs::write(dir.join("c.toml"), "recipe = \"clips.toml\"\n").unwrap();
+    assert_user_error(&train(dir, "c.toml", &empty, "r"), "image pairs");
+    // weights of another architecture
+    std::fs::write(dir.join("ok.toml"), "recipe = \"recipe.toml\"\n").unwrap();
+    let deeper = RECIPE.replace("depth = 2", "depth = 3");
+    let other = sparsh_ssl::recipe::Recipe::parse(&deeper).unwrap();
+    let vit = sparsh_bench::run::random_encoder(&other, 0).unwrap();
+    sparsh_ssl::weights::save_encoder(&vit, &dir.join("weights.safetensors")).unwrap();
+    assert_user_error(&train(dir, "ok.toml", &empty, "r"), "does not fit");
+    // eval of a directory that holds no run
+    let out = sparsh(&[
+        "fieldprobe",
+        "eval",
+        "--run",
+        empty.to_str().unwrap(),
+        "--data",
+        empty.to_str().unwrap(),
+    ]);
+    assert_user_error(&out, "run.json");
+}
