@@ -171,20 +171,25 @@ fn bootstrap() -> usize {
     1000
 }
 
+/// Reads a TOML file into `T`; a syntax error or unknown key names the file and its line.
+pub fn read_toml<T: serde::de::DeserializeOwned>(path: &Path) -> Result<T, Error> {
+    let text = std::fs::read_to_string(path).map_err(|e| Error::file(path, e))?;
+    toml::from_str(&text).map_err(|e| {
+        let msg = e.message().to_string();
+        match e.span() {
+            Some(span) => {
+                let line = text[..span.start].lines().count().max(1);
+                Error::file(path, format!("line {line}: {msg}"))
+            }
+            None => Error::file(path, msg),
+        }
+    })
+}
+
 impl BenchConfig {
     /// Reads and checks `path`; relative paths inside become relative to its directory.
     pub fn load(path: &Path) -> Result<Self, Error> {
-        let text = std::fs::read_to_string(path).map_err(|e| Error::file(path, e))?;
-        let mut cfg: BenchConfig = toml::from_str(&text).map_err(|e| {
-            let msg = e.message().to_string();
-            match e.span() {
-                Some(span) => {
-                    let line = text[..span.start].lines().count().max(1);
-                    Error::file(path, format!("line {line}: {msg}"))
-                }
-                None => Error::file(path, msg),
-            }
-        })?;
+        let mut cfg: BenchConfig = read_toml(path)?;
         cfg.path = path.to_path_buf();
         let base = path.parent().unwrap_or(Path::new("")).to_path_buf();
         let rel = |p: &mut PathBuf| {

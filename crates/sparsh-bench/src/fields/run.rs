@@ -138,17 +138,7 @@ fn thousand() -> usize {
 impl FieldProbeConfig {
     /// Reads and checks a config; every error names the file and the key.
     pub fn load(path: &Path) -> Result<Self, Error> {
-        let text = std::fs::read_to_string(path).map_err(|e| Error::file(path, e))?;
-        let mut cfg: FieldProbeConfig = toml::from_str(&text).map_err(|e| {
-            let msg = e.message().to_string();
-            match e.span() {
-                Some(span) => {
-                    let line = text[..span.start].lines().count().max(1);
-                    Error::file(path, format!("line {line}: {msg}"))
-                }
-                None => Error::file(path, msg),
-            }
-        })?;
+        let mut cfg: FieldProbeConfig = crate::config::read_toml(path)?;
         if cfg.recipe.is_relative() {
             cfg.recipe = path.parent().unwrap_or(Path::new("")).join(&cfg.recipe);
         }
@@ -162,7 +152,7 @@ impl FieldProbeConfig {
         if !(cfg.train.lr.is_finite() && cfg.train.lr > 0.0) {
             return bad("train.lr", "must be a positive number");
         }
-        if cfg.decoder.channels < 4 || cfg.decoder.channels % 2 != 0 {
+        if cfg.decoder.channels < 4 || !cfg.decoder.channels.is_multiple_of(2) {
             return bad("decoder.channels", "must be an even number ≥ 4");
         }
         if !(cfg.decoder.max_flow_px.is_finite() && cfg.decoder.max_flow_px > 0.0) {
@@ -809,7 +799,6 @@ pub fn eval_run(
             &models,
             &thresholds,
             intensity_thr,
-            offset,
             [h, w],
         )?);
     }
@@ -983,10 +972,8 @@ fn pack_report(
     models: &[Trained],
     thresholds: &[(String, f32)],
     intensity_thr: f32,
-    offset: usize,
     size: [usize; 2],
 ) -> Result<String, Error> {
-    let _ = offset;
     let pack = sparsh_optics::pack::CalibrationPack::read(pack_path)
         .map_err(|e| Error::file(pack_path, format!("{}: {}", e.field, e.message)))?;
     let (fw, fh) = pack.background.dimensions();
@@ -1000,6 +987,7 @@ fn pack_report(
     let n = h * w;
     // one pair per frame: the contact frame against the no-contact frame
     let input = |vit: &Vit| -> HookTokens {
+        let vit = vit.clone().valid();
         let device = Device::flex();
         let hooks = super::dpt::hook_blocks(vit.blocks.len());
         let mut values = Vec::new();
