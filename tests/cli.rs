@@ -814,3 +814,28 @@ fn probe_refuses_a_label_budget_or_random_init_count_out_of_range() {
         assert_user_error(&out, flag);
     }
 }
+
+/// `validate` and `bench-optics` find the cases and the calibration they ship with from any
+/// working directory; a missing directory is named once, on one line.
+#[test]
+fn shipped_defaults_work_from_any_directory() {
+    let tmp = tempfile::tempdir().unwrap();
+    let run = |args: &[&str]| {
+        Command::new(env!("CARGO_BIN_EXE_sparsh"))
+            .args(args)
+            .current_dir(tmp.path())
+            .output()
+            .expect("sparsh runs")
+    };
+    let out = run(&["validate", "--json"]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert!(!report["rows"].as_array().unwrap().is_empty());
+    let out = run(&["bench-optics", "--repeats", "1", "--threads-list", "1"]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let missing = tmp.path().join("no_cases");
+    let out = run(&["validate", missing.to_str().unwrap()]);
+    assert_user_error(&out, "no_cases");
+    let err = stderr(&out);
+    assert_eq!(err.matches("No such file").count(), 1, "{err}");
+}

@@ -8,7 +8,7 @@ mod study;
 mod tacbench;
 mod validate;
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 use anyhow::{Context, Result};
@@ -89,9 +89,10 @@ enum Command {
     /// Time the image formation per frame: each model, with and without shadows, at 320×240
     /// and 640×480, on 1 and 2 CPU threads (a ball pressed into the GelSight 2017 preset).
     BenchOptics {
-        /// Calibration of the calibrated model.
-        #[arg(long, default_value = "assets/calib/gelsight")]
-        calib: PathBuf,
+        /// Calibration of the calibrated model (default: the checkout's
+        /// assets/calib/gelsight).
+        #[arg(long)]
+        calib: Option<PathBuf>,
         /// Timed frames per configuration (after one warm-up); the median is reported.
         #[arg(long, default_value_t = 15)]
         repeats: usize,
@@ -167,9 +168,8 @@ enum Command {
     },
     /// Check the contact solvers against analytic solutions; exits 1 if a case misses.
     Validate {
-        /// Directory of validation cases.
-        #[arg(default_value = "scenes/validation")]
-        dir: PathBuf,
+        /// Directory of validation cases (default: the checkout's scenes/validation).
+        dir: Option<PathBuf>,
         /// Print JSON instead of a table.
         #[arg(long)]
         json: bool,
@@ -319,6 +319,21 @@ fn main() -> ExitCode {
     }
 }
 
+/// A file shipped with the project, for a default: `path` from the working directory when it
+/// is there, else in the checkout this binary was built from, so defaults work from any
+/// directory.
+fn shipped(path: &str) -> PathBuf {
+    let here = PathBuf::from(path);
+    let checkout = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../..")
+        .join(path);
+    if here.exists() || !checkout.exists() {
+        here
+    } else {
+        checkout
+    }
+}
+
 fn run(cli: Cli) -> Result<()> {
     if let Some(threads) = cli.threads {
         anyhow::ensure!(threads > 0, "--threads must be at least 1");
@@ -367,7 +382,12 @@ fn run(cli: Cli) -> Result<()> {
             repeats,
             threads,
             device,
-        } => optics::bench(&calib, repeats, &threads, device),
+        } => optics::bench(
+            &calib.unwrap_or_else(|| shipped("assets/calib/gelsight")),
+            repeats,
+            &threads,
+            device,
+        ),
         Command::Verify { dir } => dataset::verify(&dir),
         Command::Calibrate {
             pack,
@@ -409,7 +429,9 @@ fn run(cli: Cli) -> Result<()> {
             );
             Ok(())
         }
-        Command::Validate { dir, json } => validate::validate(&dir, json),
+        Command::Validate { dir, json } => {
+            validate::validate(&dir.unwrap_or_else(|| shipped("scenes/validation")), json)
+        }
         Command::Study { out, quick, table } => study::study(&out, quick, table.as_deref()),
         Command::Pretrain {
             config,

@@ -3,13 +3,12 @@
 
 use std::path::Path;
 
-use anyhow::{Context, Result};
+use anyhow::Result;
 use sparsh_contact::validation::{Report, run_cases};
 
 /// Runs the cases of `dir`, prints the table (or JSON) and fails if a row misses its tolerance.
 pub fn validate(dir: &Path, json: bool) -> Result<()> {
-    let report =
-        run_cases(dir).with_context(|| format!("validation cases in {}", dir.display()))?;
+    let report = run_cases(dir)?;
     if json {
         println!("{}", serde_json::to_string_pretty(&report)?);
     } else {

@@ -129,12 +129,12 @@ impl Report {
 #[derive(Debug, thiserror::Error)]
 pub enum ValidationError {
     /// Reading the case directory or a file failed.
-    #[error("{path}: {source}")]
+    #[error("{path}: {cause}")]
     Io {
         /// Path.
         path: PathBuf,
-        /// Cause.
-        source: std::io::Error,
+        /// Cause (in the message, not chained, so a report prints it once).
+        cause: std::io::Error,
     },
     /// A case file is not a valid scene or `[validation]` table.
     #[error("{path}: {reason}")]
@@ -159,9 +159,9 @@ pub enum ValidationError {
 
 /// Runs every `*.toml` case of `dir`, in file-name order.
 pub fn run_cases(dir: &Path) -> Result<Report, ValidationError> {
-    let io = |source| ValidationError::Io {
+    let io = |cause| ValidationError::Io {
         path: dir.to_path_buf(),
-        source,
+        cause,
     };
     let mut paths: Vec<PathBuf> = std::fs::read_dir(dir)
         .map_err(io)?
@@ -188,9 +188,9 @@ pub fn run_case(path: &Path) -> Result<Report, ValidationError> {
         path: path.to_path_buf(),
         reason,
     };
-    let source = std::fs::read_to_string(path).map_err(|source| ValidationError::Io {
+    let source = std::fs::read_to_string(path).map_err(|cause| ValidationError::Io {
         path: path.to_path_buf(),
-        source,
+        cause,
     })?;
     let mut table: toml::Table = source.parse().map_err(|e| spec_err(format!("{e}")))?;
     let spec_value = table
