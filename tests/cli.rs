@@ -231,6 +231,13 @@ fn render_writes_one_frame_and_its_fields() {
         exr.to_str().unwrap(),
     ]);
     assert!(out.status.success(), "{}", stderr(&out));
+    // one line saying what was written
+    let said = stderr(&out);
+    assert_eq!(said.trim_end().lines().count(), 1, "{said}");
+    assert!(
+        said.contains("f.png: frame 7") && said.contains("f.exr"),
+        "{said}"
+    );
     // The same frame as `generate` writes.
     let ds = tmp.path().join("ds");
     assert!(generate(&scene, &ds, &[]).status.success());

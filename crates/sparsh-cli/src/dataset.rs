@@ -120,6 +120,15 @@ pub fn render(
         };
         write_atomic(path, &exr_bytes(&frame.fields, &spec)?)?;
     }
+    let [fx, fy, fz] = frame.fields.force_n;
+    eprintln!(
+        "{}: frame {index} ({}×{}), force [{fx:.3}, {fy:.3}, {fz:.3}] N, slip {}{}",
+        out.display(),
+        frame.image.width(),
+        frame.image.height(),
+        frame.slip_state.name(),
+        fields.map_or(String::new(), |p| format!("; fields {}", p.display()))
+    );
     Ok(())
 }
 
