@@ -652,12 +652,15 @@ fn device_without_an_adapter_fails_or_falls_back_on_one_line() {
     assert!(!tmp.path().join("gpu.png").exists());
     let out = render_on(&scene, &auto, "auto", Some("dx12"));
     assert!(out.status.success(), "{}", stderr(&out));
+    // one line on the fallback, then render's line on what it wrote
     let err = stderr(&out);
-    assert_eq!(err.trim_end().lines().count(), 1, "one line: {err}");
+    let lines: Vec<&str> = err.trim_end().lines().collect();
+    assert_eq!(lines.len(), 2, "{err}");
     assert!(
-        err.contains("no GPU adapter") && err.contains("CPU"),
+        lines[0].contains("no GPU adapter") && lines[0].contains("CPU"),
         "{err}"
     );
+    assert!(lines[1].contains("auto.png: frame 7"), "{err}");
     assert!(
         render_on(&scene, &cpu, "cpu", Some("dx12"))
             .status
