@@ -12,9 +12,13 @@
 
 use std::ops::Range;
 use std::path::Path;
-use std::sync::atomic::{AtomicUsize, Ordering};
 
+use base64::Engine;
+use base64::engine::general_purpose::STANDARD;
 use plotters::coord::Shift;
+use sparsh_data::encode_png;
+
+use crate::run::write_atomic;
 use plotters::prelude::*;
 use plotters::style::text_anchor::{HPos, Pos, VPos};
 use plotters::style::{FontStyle, FontTransform};
@@ -156,7 +160,7 @@ pub fn write_field_grid(
         root.present().map_err(|e| at(format!("drawing: {e}")))?;
     }
     let img = image::RgbImage::from_raw(w, h, rgb).ok_or_else(|| at("image buffer size".into()))?;
-    write_atomic(&png_path, &encode_png(&img).map_err(&at)?)?;
+    write_atomic(&png_path, &encode_png(&img).map_err(&at)?).map_err(|e| e.to_string())?;
 
     if svg {
         let mut text = String::new();
@@ -166,7 +170,7 @@ pub fn write_field_grid(
             root.present().map_err(|e| at(format!("drawing: {e}")))?;
         }
         let text = with_heatmaps(&text, &layout, &grid).map_err(&at)?;
-        write_atomic(path, text.as_bytes())?;
+        write_atomic(path, text.as_bytes()).map_err(|e| e.to_string())?;
     }
     Ok(())
 }
@@ -620,32 +624,6 @@ fn draw_arrow<DB: DrawingBackend>(
     Ok(())
 }
 
-fn encode_png(img: &image::RgbImage) -> Result<Vec<u8>, String> {
-    let mut bytes = Vec::new();
-    img.write_with_encoder(image::codecs::png::PngEncoder::new(&mut bytes))
-        .map_err(|e| format!("PNG encoding: {e}"))?;
-    Ok(bytes)
-}
-
-fn base64(bytes: &[u8]) -> String {
-    const ABC: &[u8; 64] = b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
-    let mut out = String::with_capacity(bytes.len().div_ceil(3) * 4);
-    for chunk in bytes.chunks(3) {
-        let n = chunk
-            .iter()
-            .enumerate()
-            .fold(0u32, |n, (i, &b)| n | u32::from(b) << (16 - 8 * i));
-        for k in 0..4 {
-            out.push(if k <= chunk.len() {
-                char::from(ABC[(n >> (18 - 6 * k)) as usize & 63])
-            } else {
-                '='
-            });
-        }
-    }
-    out
-}
-
 /// Puts a white background and the colour maps (as embedded PNG images) under what plotters drew.
 fn with_heatmaps(svg: &str, layout: &Layout, grid: &[Vec<Prepared>]) -> Result<String, String> {
     let (header, rest) = svg
@@ -669,32 +647,12 @@ fn with_heatmaps(svg: &str, layout: &Layout, grid: &[Vec<Prepared>]) -> Result<S
                  preserveAspectRatio=\"none\" xlink:href=\"data:image/png;base64,{}\"/>\n",
                 p.size.0,
                 p.size.1,
-                base64(&encode_png(&img)?)
+                STANDARD.encode(encode_png(&img)?)
             ));
         }
     }
     out.push_str(rest);
     Ok(out)
-}
-
-/// Writes `bytes` to a temporary file beside `path`, then renames it into place.
-fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), String> {
-    static SEQ: AtomicUsize = AtomicUsize::new(0);
-    let name = path
-        .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_default();
-    let tmp = path.with_file_name(format!(
-        ".{name}.{}.{}.tmp",
-        std::process::id(),
-        SEQ.fetch_add(1, Ordering::Relaxed)
-    ));
-    std::fs::write(&tmp, bytes)
-        .and_then(|()| std::fs::rename(&tmp, path))
-        .map_err(|e| {
-            let _ = std::fs::remove_file(&tmp);
-            format!("{}: {e}", path.display())
-        })
 }
 
 #[cfg(test)]
@@ -892,11 +850,6 @@ mod tests {
 
     #[test]
     fn helpers() {
-        assert_eq!(base64(b""), "");
-        assert_eq!(base64(b"f"), "Zg==");
-        assert_eq!(base64(b"fo"), "Zm8=");
-        assert_eq!(base64(b"foo"), "Zm9v");
-        assert_eq!(base64(b"foobar"), "Zm9vYmFy");
         assert_eq!(viridis(0.0), VIRIDIS[0]);
         assert_eq!(viridis(f32::NAN), VIRIDIS[0]);
         assert_eq!(viridis(1.0), VIRIDIS[10]);

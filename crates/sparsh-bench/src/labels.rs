@@ -110,9 +110,10 @@ pub fn load_generated(dir: &Path, size: [usize; 2]) -> Result<LabelledData, Erro
     })
 }
 
-/// The label rows of `dir/labels.jsonl`, grouped by sequence in ascending sequence order and by
-/// frame within each (the order `sparsh_ssl::data::Dataset::load_generated` reads frames in).
-pub fn read_generated_labels(dir: &Path) -> Result<Vec<SequenceLabels>, Error> {
+/// The rows of `dir/labels.jsonl` as written, one list per sequence in ascending sequence order,
+/// each sorted by frame (the order `sparsh_ssl::data::Dataset::load_generated` reads frames in);
+/// never empty.
+pub fn read_label_rows(dir: &Path) -> Result<Vec<Vec<sparsh_data::Label>>, Error> {
     let path = dir.join("labels.jsonl");
     let text = std::fs::read_to_string(&path).map_err(|e| Error::file(&path, e))?;
     let mut by_seq: BTreeMap<usize, Vec<sparsh_data::Label>> = BTreeMap::new();
@@ -127,10 +128,22 @@ pub fn read_generated_labels(dir: &Path) -> Result<Vec<SequenceLabels>, Error> {
     if by_seq.is_empty() {
         return Err(Error::file(&path, "no frames"));
     }
-    by_seq
+    Ok(by_seq
         .into_values()
         .map(|mut rows| {
             rows.sort_by_key(|r| r.frame_in_sequence);
+            rows
+        })
+        .collect())
+}
+
+/// The label rows of `dir/labels.jsonl`, grouped by sequence in ascending sequence order and by
+/// frame within each (the order `sparsh_ssl::data::Dataset::load_generated` reads frames in).
+pub fn read_generated_labels(dir: &Path) -> Result<Vec<SequenceLabels>, Error> {
+    let path = dir.join("labels.jsonl");
+    read_label_rows(dir)?
+        .into_iter()
+        .map(|rows| {
             let first = &rows[0];
             let test = match first.split.as_str() {
                 "train" => false,

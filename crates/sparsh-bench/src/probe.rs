@@ -64,27 +64,51 @@ impl Tokens {
     /// shares the statistics).
     pub fn standardize(&mut self, pool: &[usize]) {
         let [_, t, d] = self.dims;
-        let row = t * d;
+        RowStats::of(&self.values, t * d, pool).apply(&mut self.values);
+    }
+}
+
+/// Per-position mean and inverse standard deviation over rows of equal length: a frozen
+/// encoder's tokens vary across samples by a small fraction of their size, so probes and
+/// decoders read them standardized with statistics of the training samples.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct RowStats {
+    /// Mean per position.
+    pub mean: Vec<f64>,
+    /// Inverse standard deviation per position (the deviation floored at 1e-6).
+    pub inv_std: Vec<f64>,
+}
+
+impl RowStats {
+    /// Statistics of the rows `pool` of `values`, cut into rows of `row` values.
+    pub fn of(values: &[f32], row: usize, pool: &[usize]) -> Self {
         let n = pool.len().max(1) as f64;
         let mut mean = vec![0.0f64; row];
         let mut var = vec![0.0f64; row];
         for &i in pool {
-            for (m, &v) in mean.iter_mut().zip(&self.values[i * row..(i + 1) * row]) {
+            for (m, &v) in mean.iter_mut().zip(&values[i * row..(i + 1) * row]) {
                 *m += v as f64 / n;
             }
         }
         for &i in pool {
             for ((s, &v), &m) in var
                 .iter_mut()
-                .zip(&self.values[i * row..(i + 1) * row])
+                .zip(&values[i * row..(i + 1) * row])
                 .zip(&mean)
             {
                 *s += (v as f64 - m).powi(2) / n;
             }
         }
-        let scale: Vec<f64> = var.iter().map(|v| 1.0 / v.sqrt().max(1e-6)).collect();
-        for sample in self.values.chunks_mut(row) {
-            for ((v, &m), &s) in sample.iter_mut().zip(&mean).zip(&scale) {
+        Self {
+            mean,
+            inv_std: var.iter().map(|v| 1.0 / v.sqrt().max(1e-6)).collect(),
+        }
+    }
+
+    /// Standardizes every row of `values` in place.
+    pub fn apply(&self, values: &mut [f32]) {
+        for sample in values.chunks_mut(self.mean.len()) {
+            for ((v, &m), &s) in sample.iter_mut().zip(&self.mean).zip(&self.inv_std) {
                 *v = ((*v as f64 - m) * s) as f32;
             }
         }

@@ -657,12 +657,19 @@ fn quick_sequences(data: &LabelledData, n: usize) -> Vec<usize> {
     keep
 }
 
-/// Writes `bytes` to `path` (its directory created) through [`sparsh_data::write_atomic`].
-fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), Error> {
+/// Writes `bytes` to `path` (its directory created) through [`sparsh_data::write_atomic`]; a
+/// failure names the file once, with its cause.
+pub(crate) fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), Error> {
     if let Some(dir) = path.parent() {
         std::fs::create_dir_all(dir).map_err(|e| Error::file(dir, e))?;
     }
-    sparsh_data::write_atomic(path, bytes).map_err(|e| Error::file(path, e))
+    sparsh_data::write_atomic(path, bytes).map_err(|e| match std::error::Error::source(&e) {
+        Some(cause) => Error::file(path, cause),
+        None => Error::File {
+            path: path.display().to_string(),
+            msg: e.to_string(),
+        },
+    })
 }
 
 /// The frozen encoder's normalized patch tokens for every sample.

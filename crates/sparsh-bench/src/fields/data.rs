@@ -5,7 +5,6 @@
 //! self-supervised decoders cannot read a field label. [`GroundTruth`] reads the EXR fields of
 //! chosen pairs, mapped into the input geometry, for scoring and for the supervised ceiling.
 
-use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use sparsh_ssl::data::{Dataset, Frame};
@@ -73,22 +72,10 @@ impl FramePairs {
                 "not a dataset written by sparsh generate (no labels.jsonl)",
             ));
         }
-        let text =
-            std::fs::read_to_string(&labels_path).map_err(|e| Error::file(&labels_path, e))?;
-        let mut by_seq: BTreeMap<usize, Vec<sparsh_data::Label>> = BTreeMap::new();
-        for (i, line) in text.lines().enumerate() {
-            if line.trim().is_empty() {
-                continue;
-            }
-            let row: sparsh_data::Label = serde_json::from_str(line)
-                .map_err(|e| Error::file(&labels_path, format!("line {}: {e}", i + 1)))?;
-            by_seq.entry(row.sequence).or_default().push(row);
-        }
+        let label_rows = crate::labels::read_label_rows(dir)?;
         let dataset = Dataset::load_generated(dir, size)?;
-        let mut sequences = Vec::with_capacity(by_seq.len());
-        for rows in by_seq.into_values() {
-            let mut rows = rows;
-            rows.sort_by_key(|r| r.frame_in_sequence);
+        let mut sequences = Vec::with_capacity(label_rows.len());
+        for rows in label_rows {
             let first = &rows[0];
             let frame_png = dir.join("frames").join(format!("{:06}.png", first.frame));
             let (fw, fh) =

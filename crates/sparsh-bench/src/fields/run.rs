@@ -30,12 +30,12 @@ use super::loss::LossWeights;
 use super::metrics::{METRICS, best_threshold, higher_is_better, score_pair};
 use super::train::{
     FieldModel, HookTokens, Prediction, Signal, Targets, TokenStats, TrainOptions, encode_hooks,
-    predict, train,
+    encode_inputs, predict, train,
 };
 use crate::Error;
 use crate::fieldfig::{Panel, write_field_grid};
 use crate::flow::{FarnebackParams, farneback_flow};
-use crate::run::random_encoder;
+use crate::run::{random_encoder, write_atomic};
 use crate::stats::{Spread, bootstrap_interval, rank};
 
 /// `[decoder]` of a field-probe config.
@@ -234,11 +234,6 @@ pub struct RunRecord {
     pub decoders: Vec<DecoderRecord>,
 }
 
-/// Pairs kept by `--quick`: a few sequences' worth.
-fn quick_cap(pairs: &mut Vec<Pair>, n: usize) {
-    pairs.truncate(n);
-}
-
 fn absolute(p: &Path) -> PathBuf {
     std::fs::canonicalize(p).unwrap_or_else(|_| p.to_path_buf())
 }
@@ -281,8 +276,8 @@ fn load_pairs(
     let size = recipe.encoder_config()?.img_size;
     let mut pairs = FramePairs::load(data, size, offset, cfg.frame_stride)?;
     if quick {
-        quick_cap(&mut pairs.train, 24);
-        quick_cap(&mut pairs.test, 12);
+        pairs.train.truncate(24);
+        pairs.test.truncate(12);
     }
     Ok(pairs)
 }
@@ -341,8 +336,8 @@ pub fn train_run(
                 .clone(),
             Some(k) => encode_hooks(&random_encoder(&recipe, k)?, &pairs, &pairs.train),
         };
-        let stats = TokenStats::of(&tokens);
-        stats.apply(&mut tokens);
+        let stats = tokens.stats();
+        tokens.standardize(&stats);
         let opts = TrainOptions {
             steps,
             batch_size: cfg.train.batch_size,
@@ -374,11 +369,10 @@ pub fn train_run(
             .map_err(|e| Error::file(&tmp, format!("{e:?}")))?;
         std::fs::rename(&tmp, &path).map_err(|e| Error::file(&path, e))?;
         let stats_path = out.join("decoders").join(format!("{name}.stats.json"));
-        sparsh_data::write_atomic(
+        write_atomic(
             &stats_path,
             &serde_json::to_vec(&stats).expect("serializable"),
-        )
-        .map_err(|e| Error::file(&stats_path, e))?;
+        )?;
         let seconds = t0.elapsed().as_secs_f64();
         log(&format!("  {name}: {seconds:.0} s"));
         records.push(DecoderRecord {
@@ -404,7 +398,7 @@ pub fn train_run(
         decoders: records,
     };
     let json = serde_json::to_vec_pretty(&record).expect("serializable");
-    sparsh_data::write_atomic(&out.join("run.json"), &json).map_err(|e| Error::file(out, e))?;
+    write_atomic(&out.join("run.json"), &json)?;
     Ok(record)
 }
 
@@ -660,7 +654,7 @@ pub fn eval_run(
         let t0 = Instant::now();
         let tokens_of = |list: &[Pair]| {
             let mut t = encode_hooks(&vit, &pairs, list);
-            stats.apply(&mut t);
+            t.standardize(&stats);
             t
         };
         let train_pred = predict(&model, &tokens_of(&pairs.train));
@@ -802,8 +796,7 @@ pub fn eval_run(
             [h, w],
         )?);
     }
-    sparsh_data::write_atomic(&out.join("fields.md"), markdown.as_bytes())
-        .map_err(|e| Error::file(&out, e))?;
+    write_atomic(&out.join("fields.md"), markdown.as_bytes())?;
     Ok(EvalSummary { rows, markdown })
 }
 
@@ -813,7 +806,7 @@ fn write_csv(path: &Path, rows: &[ResultRow]) -> Result<(), Error> {
         w.serialize(r).map_err(|e| Error::file(path, e))?;
     }
     let bytes = w.into_inner().map_err(|e| Error::file(path, e))?;
-    sparsh_data::write_atomic(path, &bytes).map_err(|e| Error::file(path, e))
+    write_atomic(path, &bytes)
 }
 
 /// Column headings of the tables, in [`METRICS`] order.
@@ -986,34 +979,13 @@ fn pack_report(
     let [h, w] = size;
     let n = h * w;
     // one pair per frame: the contact frame against the no-contact frame
-    let input = |vit: &Vit| -> HookTokens {
-        let vit = vit.clone().valid();
-        let device = Device::flex();
-        let hooks = super::dpt::hook_blocks(vit.blocks.len());
-        let mut values = Vec::new();
-        let mut t = 0;
-        for chunk in frames.chunks(16) {
-            let x: Vec<f32> = chunk
+    let input = |vit: &Vit| {
+        encode_inputs(vit, size, frames.len(), |rows| {
+            frames[rows]
                 .iter()
                 .flat_map(|f| f.iter().chain(rest.iter()).copied())
-                .collect();
-            let maps = vit.forward_hooks(
-                Tensor::<1>::from_floats(x.as_slice(), &device).reshape([chunk.len(), 1, 6, h, w]),
-                &hooks,
-            );
-            t = maps[0].dims()[1];
-            values.extend(
-                Tensor::stack::<4>(maps, 1)
-                    .into_data()
-                    .convert::<f32>()
-                    .try_into_vec::<f32>()
-                    .expect("f32"),
-            );
-        }
-        HookTokens {
-            values,
-            dims: [frames.len(), hooks.len(), t, vit.dim()],
-        }
+                .collect()
+        })
     };
     let score = |maps: &[Vec<f32>], thr: f32| -> (f64, f64, usize) {
         let mut centre = Vec::new();
@@ -1055,7 +1027,7 @@ fn pack_report(
             .find(|(m, _)| m == name)
             .map_or(0.5, |t| t.1);
         let mut tokens = input(vit);
-        stats.apply(&mut tokens);
+        tokens.standardize(stats);
         let mut maps: Vec<Vec<f32>> = predict(model, &tokens)
             .into_iter()
             .map(|p| p.normal)

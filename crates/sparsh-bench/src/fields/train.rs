@@ -5,6 +5,8 @@ use burn::module::Module;
 use burn::optim::{AdamWConfig, GradientsParams};
 use burn::prelude::*;
 use sparsh_ssl::rng::Rng;
+
+use crate::probe::RowStats;
 use sparsh_ssl::train::seeded_module;
 use sparsh_ssl::vit::Vit;
 
@@ -40,77 +42,56 @@ impl HookTokens {
     }
 }
 
-/// Per (hook, token, feature) mean and inverse standard deviation of hooked tokens over the
-/// training pairs. A frozen ViT's tokens vary across frames by a thousandth of their size (the
-/// position embedding and the flat background dominate), so, as the TacBench probe does, the
-/// decoder reads them standardized.
-#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
-pub struct TokenStats {
-    /// Means, `[hooks, tokens, dim]` row-major.
-    pub mean: Vec<f32>,
-    /// Inverse standard deviations (the deviation floored at 1e-6).
-    pub inv_std: Vec<f32>,
-}
+/// Per (hook, token, feature) statistics of hooked tokens over the training pairs
+/// ([`RowStats`]): the decoder reads standardized tokens, as the TacBench probe does.
+pub type TokenStats = RowStats;
 
-impl TokenStats {
-    /// Statistics of every row of `tokens`.
-    pub fn of(tokens: &HookTokens) -> Self {
-        let [n, k, t, d] = tokens.dims;
-        let row = k * t * d;
-        let mut mean = vec![0.0f64; row];
-        let mut var = vec![0.0f64; row];
-        for sample in tokens.values.chunks(row) {
-            for (m, &v) in mean.iter_mut().zip(sample) {
-                *m += v as f64 / n.max(1) as f64;
-            }
-        }
-        for sample in tokens.values.chunks(row) {
-            for ((s, &v), &m) in var.iter_mut().zip(sample).zip(&mean) {
-                *s += (v as f64 - m).powi(2) / n.max(1) as f64;
-            }
-        }
-        Self {
-            mean: mean.iter().map(|&m| m as f32).collect(),
-            inv_std: var
-                .iter()
-                .map(|v| (1.0 / v.sqrt().max(1e-6)) as f32)
-                .collect(),
-        }
+impl HookTokens {
+    /// The statistics of every row.
+    pub fn stats(&self) -> TokenStats {
+        let [n, k, t, d] = self.dims;
+        RowStats::of(&self.values, k * t * d, &(0..n).collect::<Vec<_>>())
     }
 
-    /// Standardizes `tokens` in place.
-    pub fn apply(&self, tokens: &mut HookTokens) {
-        for sample in tokens.values.chunks_mut(self.mean.len()) {
-            for ((v, &m), &s) in sample.iter_mut().zip(&self.mean).zip(&self.inv_std) {
-                *v = (*v - m) * s;
-            }
-        }
+    /// Standardizes every row with `stats`.
+    pub fn standardize(&mut self, stats: &TokenStats) {
+        stats.apply(&mut self.values);
     }
 }
 
-/// The encoder's input for pairs: `I_t ⊕ I_{t−k}` on channels, `[n, 1, 6, h, w]` values.
-fn pair_inputs(data: &FramePairs, pairs: &[Pair]) -> Vec<f32> {
-    pairs
-        .iter()
-        .flat_map(|&p| {
-            let (now, before) = data.frames(p);
-            now.iter().chain(before.iter()).copied()
-        })
-        .collect()
-}
-
-/// Runs the frozen encoder over `pairs` and keeps the tokens of its hooked blocks
+/// Runs the frozen encoder over the pairs and keeps the tokens of its hooked blocks
 /// ([`hook_blocks`]).
 pub fn encode_hooks(vit: &Vit, data: &FramePairs, pairs: &[Pair]) -> HookTokens {
+    encode_inputs(vit, data.size(), pairs.len(), |rows| {
+        pairs[rows]
+            .iter()
+            .flat_map(|&p| {
+                let (now, before) = data.frames(p);
+                now.iter().chain(before.iter()).copied()
+            })
+            .collect()
+    })
+}
+
+/// Runs the frozen encoder over `n` samples of `size` (`[height, width]`), whose inputs
+/// `I_t ⊕ I_{t−k}` (`[6, height, width]` each, concatenated) `input` assembles for a range of
+/// samples, and keeps the tokens of its hooked blocks ([`hook_blocks`]).
+pub fn encode_inputs(
+    vit: &Vit,
+    size: [usize; 2],
+    n: usize,
+    input: impl Fn(std::ops::Range<usize>) -> Vec<f32>,
+) -> HookTokens {
     // an encoder drawn on the autodiff device would record (and keep) every activation
     let vit = vit.clone().valid();
     let device = Device::flex();
     let hooks = hook_blocks(vit.blocks.len());
-    let [h, w] = data.size();
-    let (mut values, mut dims) = (Vec::new(), [0, hooks.len(), 0, vit.dim()]);
-    for chunk in pairs.chunks(32) {
-        let x = Tensor::<1>::from_floats(pair_inputs(data, chunk).as_slice(), &device).reshape([
-            chunk.len(),
+    let [h, w] = size;
+    let (mut values, mut dims) = (Vec::new(), [n, hooks.len(), 0, vit.dim()]);
+    for start in (0..n).step_by(32) {
+        let rows = start..(start + 32).min(n);
+        let x = Tensor::<1>::from_floats(input(rows.clone()).as_slice(), &device).reshape([
+            rows.len(),
             1,
             6,
             h,
@@ -118,16 +99,14 @@ pub fn encode_hooks(vit: &Vit, data: &FramePairs, pairs: &[Pair]) -> HookTokens 
         ]);
         let maps = vit.forward_hooks(x, &hooks);
         dims[2] = maps[0].dims()[1];
-        let stacked = Tensor::stack::<4>(maps, 1);
         values.extend(
-            stacked
+            Tensor::stack::<4>(maps, 1)
                 .into_data()
                 .convert::<f32>()
                 .try_into_vec::<f32>()
                 .expect("f32 tokens"),
         );
     }
-    dims[0] = pairs.len();
     HookTokens { values, dims }
 }
 
@@ -508,8 +487,8 @@ mod tests {
             values: vec![1.0, 10.0, 3.0, 10.0, 5.0, 10.0],
             dims: [3, 1, 1, 2],
         };
-        let stats = TokenStats::of(&t);
-        stats.apply(&mut t);
+        let stats = t.stats();
+        t.standardize(&stats);
         let f0: Vec<f32> = t.values.iter().step_by(2).copied().collect();
         let sd = (8.0f32 / 3.0).sqrt();
         for (got, want) in f0.iter().zip([-2.0 / sd, 0.0, 2.0 / sd]) {
