@@ -1,7 +1,8 @@
 // Calibrated model (crates/sparsh-optics/src/calibrated.rs): I = bg + T₀(n) + x·T_x(n) + y·T_y(n),
 // each T bilinear on an N × N table over the normal's lateral components (nx, ny) ∈ [−1, 1]²;
-// with shadows each channel is scaled by Σ_l w_{l,ch} v_l (light l's share of the flat gel's
-// colour times its visible fraction).
+// with shadows each channel is scaled by 1 − Σ_l w_{l,ch}·(1 − v_l) (= Σ_l w_{l,ch} v_l as the
+// shares sum to 1; light l's share of the flat gel's colour times its hidden fraction is lost),
+// exactly 1 where every light is in view.
 // surface: u_z; model: background | tables, index (b·N + v)·N + u for basis b (1, x, y) |
 // light shares (lights per pixel) | lights.
 
@@ -41,11 +42,12 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
     if (params.shadow_steps > 0u) {
         let shares = n_px + 3u * nodes * nodes;
         let lights = shares + n_px * params.lights;
-        var lit = vec3<f32>(0.0);
+        var lost = vec3<f32>(0.0);
         for (var l = 0u; l < params.lights; l++) {
-            lit += model[shares + c * params.lights + l].rgb * shadow_of(lights, l, id.x, id.y);
+            let hidden = 1.0 - shadow_of(lights, l, id.x, id.y);
+            lost += model[shares + c * params.lights + l].rgb * hidden;
         }
-        colour *= lit;
+        colour *= vec3<f32>(1.0) - lost;
     }
     image[c] = vec4<f32>(colour, 0.0);
 }

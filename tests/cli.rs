@@ -608,19 +608,71 @@ fn calibration_commands_reject_bad_input_on_one_line() {
         &run(&["--pixmm", "0.03", "--ball-radius-mm", "0"]),
         "--ball-radius-mm",
     );
+    assert_user_error(&run(&["--pixmm", "0.03", "--shadows"]), "--sensor");
+    assert_user_error(
+        &run(&["--pixmm", "0.03", "--shadows", "--sensor", "nope"]),
+        "unknown preset nope",
+    );
     let not_npz = tmp.path().join("pack.npz");
     std::fs::write(&not_npz, b"not a zip").unwrap();
+    let shipped = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../assets/calib/gelsight");
     let res = sparsh(&[
         "sim2real",
         "--pack",
         not_npz.to_str().unwrap(),
         "--calib",
-        out.to_str().unwrap(),
-        "--pixmm",
-        "0.03",
+        shipped.to_str().unwrap(),
     ]);
     assert_user_error(&res, "pack.npz");
     assert!(!out.exists(), "nothing written on bad input");
+}
+
+/// `sim2real` takes the pixel pitch from the calibration's map.json: a `--pixmm` that
+/// contradicts it, a missing calibration directory, and a pitch recorded nowhere each fail on
+/// one line naming what is wrong.
+#[test]
+fn sim2real_takes_the_pitch_from_the_calibration() {
+    let tmp = tempfile::tempdir().unwrap();
+    let pack = tmp.path().join("missing.npz");
+    let shipped = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../assets/calib/gelsight");
+    let run = |calib: &Path, extra: &[&str]| {
+        let mut args = vec![
+            "sim2real",
+            "--pack",
+            pack.to_str().unwrap(),
+            "--calib",
+            calib.to_str().unwrap(),
+        ];
+        args.extend_from_slice(extra);
+        sparsh(&args)
+    };
+    let out = run(&shipped, &["--pixmm", "0.03"]);
+    assert_user_error(&out, "map.json");
+    let err = stderr(&out);
+    assert!(
+        err.contains("mm_per_px") && err.contains("0.0295") && err.contains("0.03"),
+        "{err}"
+    );
+    // The same pitch given twice is fine: the run gets as far as the (missing) pack.
+    assert_user_error(&run(&shipped, &["--pixmm", "0.0295"]), "missing.npz");
+    assert_user_error(&run(&shipped, &[]), "missing.npz");
+    let nowhere = tmp.path().join("no_calibration");
+    let out = run(&nowhere, &[]);
+    assert_user_error(&out, "no_calibration");
+    assert!(stderr(&out).contains("map.json"), "{}", stderr(&out));
+    // A calibration that records no pitch needs --pixmm.
+    let bare = tmp.path().join("bare");
+    std::fs::create_dir(&bare).unwrap();
+    std::fs::copy(shipped.join("background.png"), bare.join("background.png")).unwrap();
+    let mut map: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(shipped.join("map.json")).unwrap()).unwrap();
+    map.as_object_mut().unwrap().remove("provenance");
+    std::fs::write(bare.join("map.json"), map.to_string()).unwrap();
+    assert_user_error(&run(&bare, &[]), "--pixmm");
+    assert_user_error(&run(&bare, &["--pixmm", "0.0295"]), "missing.npz");
+    // Shadows without a fitted calibration need a sensor to cast them from.
+    assert_user_error(&run(&shipped, &["--shadows"]), "--sensor");
+    assert_user_error(&run(&shipped, &["--sensor", "gelsight2017"]), "--shadows");
 }
 
 fn render_on(scene: &Path, png: &Path, device: &str, backend: Option<&str>) -> Output {

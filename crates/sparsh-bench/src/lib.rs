@@ -15,7 +15,10 @@
 //! - [`run`]: the benchmark loop with resume.
 //! - [`fields`]: T1A, the normal and shear field decoder scored against ground-truth fields,
 //!   with [`flow`] (Farnebäck optical flow, its classical baseline) and [`fieldfig`] (figures).
+//! - [`ablate`]: the sim-to-real ablation — models trained on synthetic frames of simulator
+//!   variants, scored on real frames' contact circles.
 
+pub mod ablate;
 pub mod config;
 pub mod fieldfig;
 pub mod fields;

@@ -331,8 +331,7 @@ pub fn write(out: &Path, rows: &[Row], budgets: &[f64]) -> Result<(), Error> {
     let md = markdown(rows, budgets);
     sparsh_data::write_atomic(&out.join("results.md"), md.as_bytes())
         .map_err(|e| Error::file(out.join("results.md"), e))?;
-    plotters::style::register_font(SANS, FontStyle::Normal, FONT)
-        .map_err(|_| Error::file("assets/fonts/DejaVuSans.ttf", "not a usable font"))?;
+    register_sans()?;
     let tasks: BTreeSet<&str> = rows.iter().map(|r| r.task.as_str()).collect();
     for task in tasks {
         chart(out, task, rows)?;
@@ -450,6 +449,12 @@ type Line = (String, String, Vec<(f64, f64, f64, f64)>);
 
 fn chart_err(e: impl std::fmt::Display) -> Error {
     Error::file("chart", e)
+}
+
+/// Registers the bundled DejaVu Sans as the charts' `sans-serif`.
+pub(crate) fn register_sans() -> Result<(), Error> {
+    plotters::style::register_font(SANS, FontStyle::Normal, FONT)
+        .map_err(|_| Error::file("assets/fonts/DejaVuSans.ttf", "not a usable font"))
 }
 
 /// `budget_TASK.png` and `.svg`.

@@ -1,5 +1,6 @@
 //! `sparsh`: the command line of the sparsh tactile simulator.
 
+mod ablate;
 mod dataset;
 mod fieldprobe;
 mod optics;
@@ -132,6 +133,17 @@ enum Command {
         /// Calibration directory to write.
         #[arg(long)]
         out: PathBuf,
+        /// Fit the map through the shadows of the sensor's LEDs, their z fitted too (needs
+        /// --sensor).
+        #[arg(long)]
+        shadows: bool,
+        /// Shadow-march samples per ray (with --shadows).
+        #[arg(long, default_value_t = 32)]
+        shadow_steps: u32,
+        /// Sensor preset whose LED layout starts the shadow fit (gelsight2017 for the GelSight
+        /// pack, gelsight_mini_vga for the Mini).
+        #[arg(long)]
+        sensor: Option<String>,
     },
     /// Render a pack's ball indentations with a calibration and score them against the real frames.
     Sim2real {
@@ -144,9 +156,21 @@ enum Command {
         /// Ball radius (mm).
         #[arg(long, default_value_t = 2.0)]
         ball_radius_mm: f64,
-        /// Pixel pitch of the pack (mm per pixel).
+        /// Pixel pitch of the pack (mm per pixel); default: the calibration's
+        /// (`provenance.mm_per_px` of its map.json), which it must equal when given.
         #[arg(long)]
-        pixmm: f64,
+        pixmm: Option<f64>,
+        /// Render with cast shadows: of the calibration's fitted LEDs when it was fitted with
+        /// --shadows, otherwise of --sensor's.
+        #[arg(long)]
+        shadows: bool,
+        /// Shadow-march samples per ray (default: the calibration's, else 32).
+        #[arg(long)]
+        shadow_steps: Option<u32>,
+        /// Sensor preset for the shadows' shading (default: the one the calibration was fitted
+        /// with).
+        #[arg(long)]
+        sensor: Option<String>,
         /// Frames to score.
         #[arg(long, value_enum, default_value = "odd")]
         frames: optics::FrameSet,
@@ -260,6 +284,22 @@ enum Command {
         /// Train nothing: rewrite the report of the run in --out from the units it finished.
         #[arg(long, conflicts_with = "resume")]
         report_only: bool,
+    },
+    /// Sim-to-real ablation: train on synthetic frames of each simulator variant, score the
+    /// contact circle on real frames (ablations/*.toml).
+    Ablate {
+        /// Ablation file (TOML).
+        #[arg(long)]
+        config: PathBuf,
+        /// Output directory.
+        #[arg(long)]
+        out: PathBuf,
+        /// Continue a run: skip the variants already recorded.
+        #[arg(long)]
+        resume: bool,
+        /// Small settings for tests: 24 sequences per variant, 2 epochs, one seed, 2 folds.
+        #[arg(long)]
+        quick: bool,
     },
     /// T1A: the normal and shear field decoder (DPT) on a frozen encoder, trained without
     /// field labels, scored against the simulator's ground-truth fields.
@@ -395,12 +435,29 @@ fn run(cli: Cli) -> Result<()> {
             pixmm,
             frames,
             out,
-        } => optics::calibrate(&pack, ball_radius_mm, pixmm, frames, &out),
+            shadows,
+            shadow_steps,
+            sensor,
+        } => optics::calibrate(
+            &pack,
+            ball_radius_mm,
+            pixmm,
+            frames,
+            &out,
+            optics::ShadowOptions {
+                shadows,
+                steps: Some(shadow_steps),
+                sensor: sensor.as_deref(),
+            },
+        ),
         Command::Sim2real {
             pack,
             calib,
             ball_radius_mm,
             pixmm,
+            shadows,
+            shadow_steps,
+            sensor,
             frames,
             json,
             save,
@@ -411,6 +468,11 @@ fn run(cli: Cli) -> Result<()> {
             optics::Sim2realOptions {
                 ball_radius_mm,
                 mm_per_px: pixmm,
+                shadows: optics::ShadowOptions {
+                    shadows,
+                    steps: shadow_steps,
+                    sensor: sensor.as_deref(),
+                },
                 frames,
                 json,
                 save: save.as_deref(),
@@ -465,6 +527,12 @@ fn run(cli: Cli) -> Result<()> {
             resume,
             report_only,
         } => tacbench::tacbench(&config, &out, quick, resume, report_only),
+        Command::Ablate {
+            config,
+            out,
+            resume,
+            quick,
+        } => ablate::run(&config, &out, resume, quick),
         Command::Fieldprobe { action } => match action {
             FieldprobeAction::Train {
                 config,

@@ -4,10 +4,12 @@
 use std::path::Path;
 
 use anyhow::{Context, Result, anyhow, bail};
-use sparsh_optics::CalibrationPack;
 use sparsh_optics::sim2real::{
-    BallSetup, FitOptions, FrameScore, calibrate_pack, pack_renderer, render_and_score, summarize,
+    BallSetup, FitOptions, FrameScore, ShadowSearch, calibrate_pack, calibrate_pack_with_shadows,
+    pack_renderer, render_and_score, summarize,
 };
+use sparsh_optics::{Calibration, CalibrationPack};
+use sparsh_scene::SensorConfig;
 
 /// Which frames of a pack to use.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -45,27 +47,89 @@ fn setup(ball_radius_mm: f64, mm_per_px: f64) -> Result<BallSetup> {
     })
 }
 
-/// Fits a calibration on `frames` of `pack` and saves it to `out`.
+/// The shadow options of `calibrate` and `sim2real`.
+#[derive(Debug, Clone, Copy)]
+pub struct ShadowOptions<'a> {
+    /// Fit through (calibrate) or render with (sim2real) cast shadows.
+    pub shadows: bool,
+    /// Shadow-march samples per ray.
+    pub steps: Option<u32>,
+    /// Sensor preset (LED layout and shading).
+    pub sensor: Option<&'a str>,
+}
+
+/// Longest shadow march accepted (samples per ray).
+const MAX_SHADOW_STEPS: u32 = 1024;
+
+fn shadow_steps(steps: u32) -> Result<u32> {
+    if !(1..=MAX_SHADOW_STEPS).contains(&steps) {
+        bail!("--shadow-steps must be in 1..={MAX_SHADOW_STEPS}, got {steps}");
+    }
+    Ok(steps)
+}
+
+fn preset(name: &str) -> Result<SensorConfig> {
+    SensorConfig::preset(name).ok_or_else(|| {
+        let names: Vec<&str> = sparsh_scene::PRESETS.iter().map(|(n, _)| *n).collect();
+        anyhow!(
+            "--sensor: unknown preset {name} (one of {})",
+            names.join(", ")
+        )
+    })
+}
+
+/// Fits a calibration on `frames` of `pack` and saves it to `out`; with `shadows.shadows`,
+/// through the shadows of `shadows.sensor`'s LEDs, their z fitted too.
 pub fn calibrate(
     pack_path: &Path,
     ball_radius_mm: f64,
     mm_per_px: f64,
     frames: FrameSet,
     out: &Path,
+    shadows: ShadowOptions,
 ) -> Result<()> {
     let setup = setup(ball_radius_mm, mm_per_px)?;
+    let search = match (shadows.shadows, shadows.sensor) {
+        (true, Some(name)) => Some(ShadowSearch::new(
+            preset(name)?,
+            shadow_steps(shadows.steps.unwrap_or(32))?,
+        )),
+        (true, None) => bail!(
+            "--shadows needs --sensor, the preset whose LED layout starts the fit (gelsight2017, gelsight_mini_vga)"
+        ),
+        (false, Some(_)) => bail!("--sensor is used only with --shadows"),
+        (false, None) => None,
+    };
     let pack = CalibrationPack::read(pack_path)?;
     let picked = frames.indices(pack.frames.len());
-    let calibration = calibrate_pack(&pack, &picked, setup, FitOptions::default())
-        .map_err(|e| anyhow!("{}: {e}", pack_path.display()))?;
+    let started = std::time::Instant::now();
+    let calibration = match &search {
+        Some(search) => {
+            let (calibration, report) =
+                calibrate_pack_with_shadows(&pack, &picked, setup, FitOptions::default(), search)
+                    .map_err(|e| anyhow!("{}: {e}", pack_path.display()))?;
+            eprintln!(
+                "{}: LEDs at z = {:?} mm: RMS error {:.3} on the fitting pixels, {:.2} % of pixel-LED pairs shadowed ({} layouts tried)",
+                out.display(),
+                report.best.light_z_mm,
+                report.best.rms,
+                100.0 * report.best.shadowed,
+                report.trials.len()
+            );
+            calibration
+        }
+        None => calibrate_pack(&pack, &picked, setup, FitOptions::default())
+            .map_err(|e| anyhow!("{}: {e}", pack_path.display()))?,
+    };
     calibration
         .save(out)
         .map_err(|e| anyhow!("{}: {e}", out.display()))?;
     eprintln!(
-        "{}: calibrated on {} frames of {}",
+        "{}: calibrated on {} frames of {} in {:.1} s",
         out.display(),
         picked.len(),
-        pack_path.display()
+        pack_path.display(),
+        started.elapsed().as_secs_f64()
     );
     Ok(())
 }
@@ -74,8 +138,10 @@ pub fn calibrate(
 pub struct Sim2realOptions<'a> {
     /// Ball radius (mm).
     pub ball_radius_mm: f64,
-    /// Pixel pitch of the pack (mm per pixel).
-    pub mm_per_px: f64,
+    /// Pixel pitch of the pack (mm per pixel); default: the calibration's.
+    pub mm_per_px: Option<f64>,
+    /// Render with shadows (of the calibration's fitted LEDs when it has them).
+    pub shadows: ShadowOptions<'a>,
     /// Frames to score.
     pub frames: FrameSet,
     /// Print JSON instead of a table.
@@ -86,17 +152,89 @@ pub struct Sim2realOptions<'a> {
     pub figure: Option<&'a Path>,
 }
 
+/// The pixel pitch of a sim2real run: recorded once, in the calibration's `map.json`
+/// (`provenance.mm_per_px`); `--pixmm` may repeat it but not contradict it.
+fn pitch(map_json: &Path, calibration: &Calibration, given: Option<f64>) -> Result<f64> {
+    let recorded = calibration.provenance.get("mm_per_px");
+    let recorded = match recorded {
+        None => None,
+        Some(v) => Some(
+            v.as_f64()
+                .filter(|p| p.is_finite() && *p > 0.0)
+                .ok_or_else(|| {
+                    anyhow!(
+                        "{}: provenance.mm_per_px: expected a number > 0, got {v}",
+                        map_json.display()
+                    )
+                })?,
+        ),
+    };
+    match (recorded, given) {
+        (Some(r), Some(g)) if (r - g).abs() > 1e-9 * r => bail!(
+            "{}: provenance.mm_per_px is {r} but --pixmm is {g}; drop --pixmm or recalibrate",
+            map_json.display()
+        ),
+        (Some(r), _) => Ok(r),
+        (None, Some(g)) => Ok(g),
+        (None, None) => bail!(
+            "--pixmm is needed: {} records no provenance.mm_per_px",
+            map_json.display()
+        ),
+    }
+}
+
 /// Renders the chosen frames of `pack` with the calibration in `calib` and prints PSNR, SSIM
 /// and MAE over the full image and the crop of half-width 2a around the contact.
 pub fn sim2real(pack_path: &Path, calib: &Path, options: Sim2realOptions) -> Result<()> {
-    let setup = setup(options.ball_radius_mm, options.mm_per_px)?;
+    // The error names calib/map.json (or background.png) already.
+    let calibration = Calibration::load(calib).map_err(anyhow::Error::msg)?;
+    let map_json = calib.join("map.json");
+    let setup = setup(
+        options.ball_radius_mm,
+        pitch(&map_json, &calibration, options.mm_per_px)?,
+    )?;
+    let fitted = calibration.shadows.as_ref();
+    let opts = options.shadows;
+    let shadows = if opts.shadows {
+        let name = opts
+            .sensor
+            .or(fitted.map(|f| f.sensor.as_str()))
+            .ok_or_else(|| {
+                anyhow!(
+                    "--shadows needs --sensor here: {} was fitted without shadows and names no sensor",
+                    map_json.display()
+                )
+            })?;
+        let steps = shadow_steps(opts.steps.or(fitted.map(|f| f.steps)).unwrap_or(32))?;
+        if fitted.is_none() {
+            eprintln!(
+                "{}: the map was fitted without shadows (calibrate --shadows fits it through them); casting {name}'s LEDs",
+                map_json.display()
+            );
+        }
+        Some((preset(name)?, steps))
+    } else {
+        if opts.sensor.is_some() || opts.steps.is_some() {
+            bail!("--sensor and --shadow-steps are used only with --shadows");
+        }
+        if fitted.is_some() {
+            eprintln!(
+                "{}: the map was fitted through shadows; rendering without them (add --shadows)",
+                map_json.display()
+            );
+        }
+        None
+    };
     let pack = CalibrationPack::read(pack_path)?;
-    let calibration =
-        sparsh_optics::Calibration::load(calib).map_err(|e| anyhow!("{}: {e}", calib.display()))?;
     if let Some(dir) = options.save {
         std::fs::create_dir_all(dir).map_err(|e| anyhow!("{}: {e}", dir.display()))?;
     }
-    let renderer = pack_renderer(&calibration, &pack, setup, None);
+    let renderer = pack_renderer(
+        &calibration,
+        &pack,
+        setup,
+        shadows.as_ref().map(|(sensor, steps)| (sensor, *steps)),
+    );
     let mut scores: Vec<FrameScore> = Vec::new();
     let mut images = Vec::new();
     for k in options.frames.indices(pack.frames.len()) {
@@ -172,8 +310,7 @@ pub fn bench(
 ) -> Result<()> {
     use sparsh_optics::{PhotometricRenderer, Renderer, Surface, photometric::shadow_settings};
     anyhow::ensure!(repeats > 0, "--repeats must be at least 1");
-    let calibration =
-        sparsh_optics::Calibration::load(calib).map_err(|e| anyhow!("{}: {e}", calib.display()))?;
+    let calibration = Calibration::load(calib).map_err(|e| anyhow!("{}: {e}", calib.display()))?;
     let preset = sparsh_scene::SensorConfig::preset("gelsight2017").expect("shipped preset");
     let gpu = device.context()?;
     let median_ms = |renderer: &Renderer, surface: &Surface| -> Result<f64> {

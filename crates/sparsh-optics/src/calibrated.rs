@@ -57,22 +57,16 @@ fn nodes_of(nodes: usize, n: [f64; 2]) -> ([usize; 4], [f64; 4]) {
     )
 }
 
-/// Per-pixel features of a surface: the normal's lateral components and the position bases.
-fn features(surface: &Surface) -> Vec<([f64; 2], [f64; BASES])> {
+/// Features of cell `c` of a surface: the normal's lateral components and the position bases.
+fn feature(surface: &Surface, c: usize) -> ([f64; 2], [f64; BASES]) {
     let grid = surface.grid;
     let (nx, ny) = (grid.nx, grid.ny);
-    let uz = surface.uz_mm;
-    (0..grid.len())
-        .into_par_iter()
-        .map(|c| {
-            let (i, j) = (c % nx, c / nx);
-            let [gx, gy] = gradient(uz, grid, i, j);
-            let norm = (1.0 + gx * gx + gy * gy).sqrt();
-            let x = (i as f64 + 0.5) / nx as f64 - 0.5;
-            let y = (j as f64 + 0.5) / ny as f64 - 0.5;
-            ([gx / norm, gy / norm], [1.0, x, y])
-        })
-        .collect()
+    let (i, j) = (c % nx, c / nx);
+    let [gx, gy] = gradient(surface.uz_mm, grid, i, j);
+    let norm = (1.0 + gx * gx + gy * gy).sqrt();
+    let x = (i as f64 + 0.5) / nx as f64 - 0.5;
+    let y = (j as f64 + 0.5) / ny as f64 - 0.5;
+    ([gx / norm, gy / norm], [1.0, x, y])
 }
 
 /// Central differences inside, one-sided at the border (like `numpy.gradient`).
@@ -91,10 +85,11 @@ impl ColourMap {
     /// Colour change of every pixel of a surface.
     pub fn delta(&self, surface: &Surface) -> Vec<[f32; 3]> {
         let plane = self.nodes * self.nodes;
-        features(surface)
-            .par_iter()
-            .map(|(n, basis)| {
-                let (idx, w) = nodes_of(self.nodes, *n);
+        (0..surface.grid.len())
+            .into_par_iter()
+            .map(|c| {
+                let (n, basis) = feature(surface, c);
+                let (idx, w) = nodes_of(self.nodes, n);
                 let mut out = [0.0f64; 3];
                 for (b, beta) in basis.iter().enumerate() {
                     for (k, wk) in idx.iter().zip(w) {
@@ -110,14 +105,22 @@ impl ColourMap {
     }
 }
 
-/// Least-squares accumulator for a [`ColourMap`]: the normal equations kept per table cell.
+/// Least-squares accumulator for a [`ColourMap`]: the normal equations per colour channel.
+///
+/// Each pixel of a frame is explained as I_ch = s_ch·(bg_ch + ΔI_ch) with a known attenuation
+/// s_ch (1 without shadows; 1 − Σ_l w_{l,ch}·(1 − v_l) through them, [`attenuation`]). Since ΔI_ch
+/// = φ·c_ch is linear in the coefficients, the rows are s_ch·φ and the targets
+/// t_ch = I_ch − s_ch·bg_ch: the fit minimises the image-space error
+/// Σ (s_ch·(bg_ch + φ·c_ch) − I_ch)², i.e. ΔI fitted to I/s − bg with weights s².
 #[derive(Debug, Clone)]
 pub struct MapFitter {
     nodes: usize,
-    /// Σ φφᵀ (dense, K × K with K = BASES·N²).
-    normal: Vec<f64>,
-    /// Σ φ·ΔI per channel.
+    /// Σ s_ch²·φφᵀ per channel (dense, K × K with K = BASES·N²).
+    normal: [Vec<f64>; 3],
+    /// Σ s_ch·φ·t_ch per channel.
     rhs: Vec<[f64; 3]>,
+    /// Σ t_ch² per channel (for [`MapFitter::residual`]).
+    target_sq: [f64; 3],
     samples: usize,
 }
 
@@ -128,31 +131,30 @@ impl MapFitter {
         let k = BASES * nodes * nodes;
         MapFitter {
             nodes,
-            normal: vec![0.0; k * k],
+            normal: std::array::from_fn(|_| vec![0.0; k * k]),
             rhs: vec![[0.0; 3]; k],
+            target_sq: [0.0; 3],
             samples: 0,
         }
     }
 
     #[allow(clippy::needless_range_loop)] // three channels side by side read clearer indexed
-    /// Adds the pixels of one frame for which `use_pixel(i, j)` holds: the real image `real`
-    /// is explained as `background + ΔI(surface)`.
-    pub fn add_frame(
+    /// Adds the pixels `cells` (row-major cell indices) of one frame, the p-th explained as
+    /// I_ch = s_ch·(background_ch + ΔI_ch(surface)) with s = `attenuation(p)` (see the type).
+    pub fn add_attenuated(
         &mut self,
         surface: &Surface,
         real: &RgbImage,
         background: &[[f32; 3]],
-        use_pixel: impl Fn(usize, usize) -> bool,
+        cells: &[usize],
+        attenuation: impl Fn(usize) -> [f64; 3],
     ) {
         let k_total = BASES * self.nodes * self.nodes;
         let plane = self.nodes * self.nodes;
-        let feats = features(surface);
-        let nx = surface.grid.nx;
-        for (c, (n, basis)) in feats.iter().enumerate() {
-            if !use_pixel(c % nx, c / nx) {
-                continue;
-            }
-            let (idx, w) = nodes_of(self.nodes, *n);
+        let px = real.as_raw();
+        for (p, &c) in cells.iter().enumerate() {
+            let (n, basis) = feature(surface, c);
+            let (idx, w) = nodes_of(self.nodes, n);
             let mut cols = [0usize; 12];
             let mut vals = [0.0f64; 12];
             for b in 0..BASES {
@@ -161,17 +163,20 @@ impl MapFitter {
                     vals[b * 4 + q] = basis[b] * w[q];
                 }
             }
-            let px = real.as_raw();
-            let target: [f64; 3] =
-                std::array::from_fn(|ch| px[c * 3 + ch] as f64 - background[c][ch] as f64);
-            for p in 0..12 {
-                let row = cols[p] * k_total;
-                for q in 0..12 {
-                    self.normal[row + cols[q]] += vals[p] * vals[q];
+            let s = attenuation(p);
+            for ch in 0..3 {
+                let target = px[c * 3 + ch] as f64 - s[ch] * background[c][ch] as f64;
+                let s2 = s[ch] * s[ch];
+                let normal = &mut self.normal[ch];
+                for a in 0..12 {
+                    let row = cols[a] * k_total;
+                    let va = s2 * vals[a];
+                    for b in 0..12 {
+                        normal[row + cols[b]] += va * vals[b];
+                    }
+                    self.rhs[cols[a]][ch] += s[ch] * vals[a] * target;
                 }
-                for ch in 0..3 {
-                    self.rhs[cols[p]][ch] += vals[p] * target[ch];
-                }
+                self.target_sq[ch] += target * target;
             }
             self.samples += 1;
         }
@@ -185,69 +190,107 @@ impl MapFitter {
     /// Adds another fitter's sums (same node count).
     pub fn merge(&mut self, other: &MapFitter) {
         assert_eq!(self.nodes, other.nodes, "fitters differ in table size");
-        for (a, b) in self.normal.iter_mut().zip(&other.normal) {
-            *a += b;
+        for (mine, theirs) in self.normal.iter_mut().zip(&other.normal) {
+            for (a, b) in mine.iter_mut().zip(theirs) {
+                *a += b;
+            }
         }
         for (a, b) in self.rhs.iter_mut().zip(&other.rhs) {
             for ch in 0..3 {
                 a[ch] += b[ch];
             }
         }
+        for ch in 0..3 {
+            self.target_sq[ch] += other.target_sq[ch];
+        }
         self.samples += other.samples;
     }
 
-    /// Solves (ΦᵀΦ + λ s DᵀD + 10⁻⁶ s I) c = ΦᵀΔI, with D the second differences of each table
-    /// along both axes (a thin-plate-like penalty that leaves affine tables free) and
-    /// s = trace(ΦᵀΦ)/K, which makes λ (`smoothness`) scale-free.
+    /// The data term of the fit at `map`'s coefficients c, summed over channels:
+    /// Σ_ch ‖s_ch·φ·c_ch − t_ch‖² = Σ_ch (Σt² − 2·cᵀΣs·φ·t + cᵀ(Σs²φφᵀ)c), the squared
+    /// image-space error over the added pixels (0–255 units², before rounding).
+    pub fn residual(&self, map: &ColourMap) -> f64 {
+        let k_total = BASES * self.nodes * self.nodes;
+        assert_eq!(
+            map.coef.len(),
+            k_total,
+            "map and fitter differ in table size"
+        );
+        (0..3)
+            .map(|ch| {
+                let c: Vec<f64> = map.coef.iter().map(|v| v[ch] as f64).collect();
+                let quadratic: f64 = self.normal[ch]
+                    .par_chunks(k_total)
+                    .zip(&c)
+                    .map(|(row, ci)| ci * row.iter().zip(&c).map(|(a, cj)| a * cj).sum::<f64>())
+                    .collect::<Vec<f64>>()
+                    .iter()
+                    .sum();
+                let linear: f64 = self.rhs.iter().zip(&c).map(|(b, ci)| b[ch] * ci).sum();
+                self.target_sq[ch] - 2.0 * linear + quadratic
+            })
+            .sum()
+    }
+
+    /// Solves, per channel, (ΦᵀΦ + λ s DᵀD + 10⁻⁶ s I) c = ΦᵀΔI (rows weighted as in the type's
+    /// doc), with D the second differences of each table along both axes (a thin-plate-like
+    /// penalty that leaves affine tables free) and s = trace(ΦᵀΦ)/K, which makes λ
+    /// (`smoothness`) scale-free.
     pub fn solve(&self, smoothness: f64) -> Result<ColourMap, String> {
         if self.samples == 0 {
             return Err("no pixel to fit the map on".into());
         }
         let n = self.nodes;
         let k_total = BASES * n * n;
-        let mut a = self.normal.clone();
-        let scale = (0..k_total).map(|k| a[k * k_total + k]).sum::<f64>() / k_total as f64;
-        let lam = smoothness * scale;
-        // Second differences along u and along v: affine tables cost nothing.
-        for b in 0..BASES {
-            for v in 0..n {
-                for u in 0..n {
-                    let k = b * n * n + v * n + u;
-                    for step in [1, n] {
-                        let interior = if step == 1 {
-                            u > 0 && u + 1 < n
-                        } else {
-                            v > 0 && v + 1 < n
-                        };
-                        if !interior {
-                            continue;
-                        }
-                        let stencil = [(k - step, 1.0), (k, -2.0), (k + step, 1.0)];
-                        for (p, wp) in stencil {
-                            for (q, wq) in stencil {
-                                a[p * k_total + q] += lam * wp * wq;
+        let mut coef = vec![[0.0f32; 3]; k_total];
+        for ch in 0..3 {
+            let mut a = self.normal[ch].clone();
+            let scale = (0..k_total).map(|k| a[k * k_total + k]).sum::<f64>() / k_total as f64;
+            let lam = smoothness * scale;
+            // Second differences along u and along v: affine tables cost nothing.
+            for b in 0..BASES {
+                for v in 0..n {
+                    for u in 0..n {
+                        let k = b * n * n + v * n + u;
+                        for step in [1, n] {
+                            let interior = if step == 1 {
+                                u > 0 && u + 1 < n
+                            } else {
+                                v > 0 && v + 1 < n
+                            };
+                            if !interior {
+                                continue;
+                            }
+                            let stencil = [(k - step, 1.0), (k, -2.0), (k + step, 1.0)];
+                            for (p, wp) in stencil {
+                                for (q, wq) in stencil {
+                                    a[p * k_total + q] += lam * wp * wq;
+                                }
                             }
                         }
                     }
                 }
             }
+            for k in 0..k_total {
+                a[k * k_total + k] += 1e-6 * scale;
+            }
+            let b: Vec<f64> = self.rhs.iter().map(|r| r[ch]).collect();
+            let x = cholesky_solve(&mut a, &b, k_total)?;
+            for (out, v) in coef.iter_mut().zip(x) {
+                out[ch] = v as f32;
+            }
         }
-        for k in 0..k_total {
-            a[k * k_total + k] += 1e-6 * scale;
-        }
-        let x = cholesky_solve(&mut a, &self.rhs, k_total)?;
         Ok(ColourMap {
             format: FORMAT.into(),
             nodes: n,
-            coef: x.iter().map(|c| c.map(|v| v as f32)).collect(),
+            coef,
         })
     }
 }
 
-#[allow(clippy::needless_range_loop)] // three channels side by side read clearer indexed
 /// Solves A x = b for symmetric positive definite A (row-major, overwritten by its Cholesky
-/// factor), three right-hand sides.
-fn cholesky_solve(a: &mut [f64], b: &[[f64; 3]], n: usize) -> Result<Vec<[f64; 3]>, String> {
+/// factor).
+fn cholesky_solve(a: &mut [f64], b: &[f64], n: usize) -> Result<Vec<f64>, String> {
     for j in 0..n {
         let mut d = a[j * n + j];
         for k in 0..j {
@@ -268,29 +311,22 @@ fn cholesky_solve(a: &mut [f64], b: &[[f64; 3]], n: usize) -> Result<Vec<[f64; 3
     let mut y = b.to_vec();
     for i in 0..n {
         for k in 0..i {
-            for ch in 0..3 {
-                y[i][ch] -= a[i * n + k] * y[k][ch];
-            }
+            y[i] -= a[i * n + k] * y[k];
         }
-        for ch in 0..3 {
-            y[i][ch] /= a[i * n + i];
-        }
+        y[i] /= a[i * n + i];
     }
     for i in (0..n).rev() {
         for k in i + 1..n {
-            for ch in 0..3 {
-                y[i][ch] -= a[k * n + i] * y[k][ch];
-            }
+            y[i] -= a[k * n + i] * y[k];
         }
-        for ch in 0..3 {
-            y[i][ch] /= a[i * n + i];
-        }
+        y[i] /= a[i * n + i];
     }
     Ok(y)
 }
 
-/// A calibration on disk: `map.json` (the [`ColourMap`] and how it was fitted) and
-/// `background.png` (the no-contact image re-estimated from the calibration frames).
+/// A calibration on disk: `map.json` (the [`ColourMap`], how it was fitted and, for a map fitted
+/// through shadows, the lights it was fitted with) and `background.png` (the no-contact image
+/// re-estimated from the calibration frames).
 #[derive(Debug, Clone)]
 pub struct Calibration {
     /// The colour map.
@@ -299,14 +335,103 @@ pub struct Calibration {
     pub background: RgbImage,
     /// Free-form provenance written next to the map (pack, frames, ball radius, pixel pitch).
     pub provenance: serde_json::Value,
+    /// The lights the map was fitted through (`None`: fitted without shadows).
+    pub shadows: Option<FittedLights>,
+}
+
+/// The lights of a map fitted through shadows ([`crate::sim2real::calibrate_pack_with_shadows`]):
+/// the map explains a pixel as (bg + ΔI)·(1 − Σ_l w_l·(1 − v_l)) under exactly these lights, so
+/// a renderer with shadows casts them from these.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FittedLights {
+    /// Sensor preset whose shading (for the lights' shares w_l) and LED layout the fit started
+    /// from.
+    pub sensor: String,
+    /// The lights, with their fitted positions (mm, camera frame).
+    pub lights: Vec<Light>,
+    /// Radius of each LED's emitting disc (mm).
+    pub led_radius_mm: f64,
+    /// Shadow-march samples per ray used in the fit.
+    pub steps: u32,
+}
+
+/// One light as written in `map.json` (`sparsh_scene::Light` is read-only).
+#[derive(Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct LightFile {
+    position_mm: [f64; 3],
+    color: [f64; 3],
+    intensity: f64,
 }
 
 #[derive(Serialize, Deserialize)]
 struct MapFile {
     #[serde(flatten)]
     map: ColourMap,
+    /// True when the map was fitted through shadows; then the next four fields are present.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    shadows: bool,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    sensor: Option<String>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    lights: Option<Vec<LightFile>>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    led_radius_mm: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    shadow_steps: Option<u32>,
     #[serde(default)]
     provenance: serde_json::Value,
+}
+
+impl MapFile {
+    /// The fitted lights, checked: all four fields with `shadows = true`, none without.
+    fn fitted_lights(&self) -> Result<Option<FittedLights>, String> {
+        let given = [
+            ("sensor", self.sensor.is_some()),
+            ("lights", self.lights.is_some()),
+            ("led_radius_mm", self.led_radius_mm.is_some()),
+            ("shadow_steps", self.shadow_steps.is_some()),
+        ];
+        if !self.shadows {
+            return match given.iter().find(|(_, present)| *present) {
+                Some((field, _)) => Err(format!("{field}: given but shadows is not true")),
+                None => Ok(None),
+            };
+        }
+        let missing = |field: &str| format!("{field}: missing (shadows is true)");
+        let sensor = self.sensor.clone().ok_or_else(|| missing("sensor"))?;
+        let lights = self.lights.as_ref().ok_or_else(|| missing("lights"))?;
+        let led_radius_mm = self.led_radius_mm.ok_or_else(|| missing("led_radius_mm"))?;
+        let steps = self.shadow_steps.ok_or_else(|| missing("shadow_steps"))?;
+        if lights.is_empty() {
+            return Err("lights: empty".into());
+        }
+        for (l, light) in lights.iter().enumerate() {
+            let values = light.position_mm.iter().chain(&light.color);
+            if values.chain([&light.intensity]).any(|v| !v.is_finite()) {
+                return Err(format!("lights: light {l} has a non-finite value"));
+            }
+        }
+        if !(led_radius_mm.is_finite() && led_radius_mm >= 0.0) {
+            return Err(format!("led_radius_mm: must be ≥ 0, got {led_radius_mm}"));
+        }
+        if steps == 0 {
+            return Err("shadow_steps: must be at least 1".into());
+        }
+        Ok(Some(FittedLights {
+            sensor,
+            lights: lights
+                .iter()
+                .map(|l| Light {
+                    position_mm: l.position_mm,
+                    color: l.color,
+                    intensity: l.intensity,
+                })
+                .collect(),
+            led_radius_mm,
+            steps,
+        }))
+    }
 }
 
 impl Calibration {
@@ -315,8 +440,23 @@ impl Calibration {
     pub fn save(&self, dir: &Path) -> Result<(), String> {
         std::fs::create_dir_all(dir)
             .map_err(|e| format!("{}: cannot create: {e}", dir.display()))?;
+        let fitted = self.shadows.as_ref();
         let json = serde_json::to_string(&MapFile {
             map: self.map.clone(),
+            shadows: fitted.is_some(),
+            sensor: fitted.map(|f| f.sensor.clone()),
+            lights: fitted.map(|f| {
+                f.lights
+                    .iter()
+                    .map(|l| LightFile {
+                        position_mm: l.position_mm,
+                        color: l.color,
+                        intensity: l.intensity,
+                    })
+                    .collect()
+            }),
+            led_radius_mm: fitted.map(|f| f.led_radius_mm),
+            shadow_steps: fitted.map(|f| f.steps),
             provenance: self.provenance.clone(),
         })
         .map_err(|e| e.to_string())?;
@@ -337,6 +477,9 @@ impl Calibration {
             .map_err(|e| format!("{}: cannot read: {e}", map_path.display()))?;
         let file: MapFile =
             serde_json::from_str(&text).map_err(|e| format!("{}: {e}", map_path.display()))?;
+        let shadows = file
+            .fitted_lights()
+            .map_err(|e| format!("{}: {e}", map_path.display()))?;
         let map = file.map;
         if map.format != FORMAT {
             return Err(format!(
@@ -368,8 +511,22 @@ impl Calibration {
             map,
             background,
             provenance: file.provenance,
+            shadows,
         })
     }
+}
+
+/// The shadow attenuation S_ch = 1 − Σ_l w_{l,ch}·(1 − v_l) of a pixel with light shares
+/// `shares` and visible fractions `visible` (one per light): in f32 as on the GPU, exactly 1
+/// when no light is hidden.
+pub fn attenuation(shares: &[[f32; 3]], visible: &[f64]) -> [f32; 3] {
+    std::array::from_fn(|ch| {
+        1.0 - shares
+            .iter()
+            .zip(visible)
+            .map(|(w, v)| w[ch] * (1.0 - *v as f32))
+            .sum::<f32>()
+    })
 }
 
 /// Writes through `<name>.tmp` then renames, so readers never see half a file.
@@ -385,9 +542,13 @@ pub(crate) fn write_atomic(
 }
 
 /// Renders with a [`ColourMap`] over a background: I = clamp(round(bg + ΔI)), and with shadows
-/// I_ch = (bg_ch + ΔI_ch)·Σ_l w_{l,ch}·v_l, where v_l is the visible fraction of light l
-/// ([`crate::shadow`]) and w_{l,ch} its share of the pixel's flat-gel radiance in channel ch
-/// ([`crate::photometric::light_shares`]): a shadow removes what its light contributes.
+/// I_ch = (bg_ch + ΔI_ch)·S_ch with S_ch = 1 − Σ_l w_{l,ch}·(1 − v_l), where v_l is the
+/// visible fraction of light l ([`crate::shadow`]) and w_{l,ch} its share of the pixel's
+/// flat-gel radiance in channel ch ([`crate::photometric::light_shares`]): a shadow removes
+/// what its light contributes. As the shares sum to 1, S_ch = Σ_l w_{l,ch}·v_l; written as a
+/// loss it is exactly 1 where every light is in view ([`attenuation`]). The
+/// lights are the calibration's fitted ones when it has them ([`FittedLights`]), otherwise the
+/// sensor's.
 #[derive(Debug, Clone)]
 pub struct CalibratedRenderer {
     pub(crate) map: ColourMap,
@@ -395,6 +556,8 @@ pub struct CalibratedRenderer {
     pub(crate) width_px: usize,
     pub(crate) height_px: usize,
     pub(crate) shadows: Option<CalibratedShadows>,
+    /// The lights the map was fitted through, if any.
+    fitted: Option<FittedLights>,
 }
 
 /// What the calibrated model needs to cast shadows: the sensor's lights and their shares.
@@ -426,21 +589,28 @@ impl CalibratedRenderer {
             width_px,
             height_px,
             shadows: None,
+            fitted: calibration.shadows.clone(),
         }
     }
 
-    /// Casts shadows of `sensor`'s lights (its grid must match the image size), marching
-    /// `steps` samples per ray.
+    /// Casts shadows (its grid must match the image size), marching `steps` samples per ray:
+    /// of the calibration's fitted lights and LED radius when it has them, otherwise of
+    /// `sensor`'s; the lights' shares w_{l,ch} follow from `sensor`'s shading with those lights.
     pub fn with_shadows(mut self, sensor: &SensorConfig, steps: u32) -> CalibratedRenderer {
         assert_eq!(
             (sensor.width_px, sensor.height_px),
             (self.width_px, self.height_px),
             "sensor and image differ in size"
         );
+        let mut sensor = sensor.clone();
+        if let Some(fitted) = &self.fitted {
+            sensor.lights = fitted.lights.clone();
+            sensor.led_radius_mm = fitted.led_radius_mm;
+        }
         self.shadows = Some(CalibratedShadows {
-            lights: sensor.lights.clone(),
-            shares: light_shares(sensor),
-            settings: shadow_settings(sensor, steps),
+            shares: light_shares(&sensor),
+            settings: shadow_settings(&sensor, steps),
+            lights: sensor.lights,
         });
         self
     }
@@ -476,8 +646,9 @@ impl CalibratedRenderer {
                 .zip(visible.par_chunks(n))
                 .zip(sh.shares.par_chunks(n))
                 .for_each(|((px, v), w)| {
-                    for (ch, value) in px.iter_mut().enumerate() {
-                        *value *= w.iter().zip(v).map(|(w, v)| w[ch] * *v as f32).sum::<f32>();
+                    let s = attenuation(w, v);
+                    for (value, s) in px.iter_mut().zip(s) {
+                        *value *= s;
                     }
                 });
         }

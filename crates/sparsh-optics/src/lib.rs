@@ -16,7 +16,7 @@ pub mod sim2real;
 use image::RgbImage;
 use sparsh_scene::{Grid, MarkerGrid, OpticsModel, OpticsSpec, SensorConfig};
 
-pub use calibrated::{CalibratedRenderer, Calibration, ColourMap};
+pub use calibrated::{CalibratedRenderer, Calibration, ColourMap, FittedLights};
 pub use gpu::{GpuContext, GpuError, GpuRenderer};
 pub use pack::{CalibrationPack, PackError};
 pub use photometric::PhotometricRenderer;
@@ -81,7 +81,9 @@ pub struct ImageFormation {
 
 impl ImageFormation {
     /// Builds the model `optics` asks for (calibration directory already resolved) for
-    /// `sensor`, on the GPU of `gpu` if given, its imperfections drawn from `seed`.
+    /// `sensor`, on the GPU of `gpu` if given, its imperfections drawn from `seed`. The
+    /// calibrated model with shadows casts the calibration's fitted lights when it was fitted
+    /// through shadows ([`CalibratedRenderer::with_shadows`]), marching `optics.shadow_steps`.
     pub fn new(
         sensor: &SensorConfig,
         optics: &OpticsSpec,

@@ -297,6 +297,25 @@ pub fn visibilities(
     out
 }
 
+/// Visible fraction of one light from each of `cells` (row-major cell indices) of a height
+/// field: [`visibilities`] for one light and some cells (the same values).
+pub fn cell_visibilities(
+    field: &HeightField,
+    cells: &[usize],
+    light: &Light,
+    settings: ShadowSettings,
+) -> Vec<f64> {
+    let l = light_point(light);
+    let g = field.grid;
+    cells
+        .par_iter()
+        .map(|&c| {
+            let p = [g.x_mm(c % g.nx), g.y_mm(c / g.nx), field.height_mm[c]];
+            light_visibility(field, p, l, settings)
+        })
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -485,6 +504,23 @@ mod tests {
             let (lit, shadowed) = assert_shortcuts_exact(&uz, grid, &lights, s);
             assert!(shadowed > 50 && lit > 2 * grid.len(), "{shadowed} {lit}");
         }
+    }
+
+    /// One light at chosen cells gives the same values as every light at every cell.
+    #[test]
+    fn cell_visibilities_match_the_full_field() {
+        let uz = crate::ball::ball_press_uz_mm(GRID, [0.5, 0.1], 0.8, 2.0).unwrap();
+        let lights = [light_at(8.0, 1.0, -2.0), light_at(-6.0, -4.0, -3.0)];
+        let all = visibilities(&uz, GRID, &lights, ShadowSettings::default());
+        let field = HeightField::from_uz(&uz, GRID);
+        let cells: Vec<usize> = (0..GRID.len()).step_by(7).collect();
+        for (l, light) in lights.iter().enumerate() {
+            let some = cell_visibilities(&field, &cells, light, ShadowSettings::default());
+            for (v, &c) in some.iter().zip(&cells) {
+                assert_eq!(*v, all[c * lights.len() + l], "cell {c}, light {l}");
+            }
+        }
+        assert!(all.iter().any(|v| *v < 1.0), "the press casts a shadow");
     }
 
     #[test]

@@ -6,9 +6,10 @@ use image::RgbImage;
 use sparsh_optics::ball::ball_press_uz_mm;
 use sparsh_optics::photometric::shadow_settings;
 use sparsh_optics::{
-    CalibratedRenderer, Calibration, ColourMap, GpuContext, PhotometricRenderer, Renderer, Surface,
+    CalibratedRenderer, Calibration, ColourMap, FittedLights, GpuContext, PhotometricRenderer,
+    Renderer, Surface,
 };
-use sparsh_scene::{Grid, SensorConfig};
+use sparsh_scene::{Grid, Light, SensorConfig};
 
 fn context() -> Option<GpuContext> {
     match GpuContext::shared() {
@@ -197,6 +198,33 @@ fn synthetic_calibration(width_px: usize, height_px: usize) -> Calibration {
         },
         background,
         provenance: serde_json::Value::Null,
+        shadows: None,
+    }
+}
+
+/// The calibration fitted through shadows of lights other than the sensor's: `sensor`'s LEDs
+/// turned by 40° about the axis and lowered to z = −2.5 mm, with 0.6 mm emitters.
+fn with_fitted_lights(calibration: Calibration, sensor: &SensorConfig) -> Calibration {
+    let (sin, cos) = 40f64.to_radians().sin_cos();
+    let lights = sensor
+        .lights
+        .iter()
+        .map(|l| {
+            let [x, y, _] = l.position_mm;
+            Light {
+                position_mm: [cos * x - sin * y, sin * x + cos * y, -2.5],
+                ..l.clone()
+            }
+        })
+        .collect();
+    Calibration {
+        shadows: Some(FittedLights {
+            sensor: sensor.name.clone(),
+            lights,
+            led_radius_mm: 0.6,
+            steps: 32,
+        }),
+        ..calibration
     }
 }
 
@@ -210,7 +238,15 @@ fn calibrated_model_matches_the_cpu() {
         let shadowed =
             Renderer::Calibrated(CalibratedRenderer::new(&cal, w, h).with_shadows(&sensor, 32));
         assert_shadows_show("calibrated", &plain, &shadowed, sensor.grid());
-        for (label, cpu) in [("", plain), (" with shadows", shadowed)] {
+        let fitted = with_fitted_lights(cal, &sensor);
+        let refitted =
+            Renderer::Calibrated(CalibratedRenderer::new(&fitted, w, h).with_shadows(&sensor, 32));
+        assert_shadows_show("fitted lights", &shadowed, &refitted, sensor.grid());
+        for (label, cpu) in [
+            ("", plain),
+            (" with shadows", shadowed),
+            (" with shadows of fitted lights", refitted),
+        ] {
             check_parity(
                 &format!("calibrated {w}×{h}{label}"),
                 cpu,

@@ -289,6 +289,8 @@ pub(crate) struct SensorSection {
     fps: Option<f64>,
     lights: Option<Vec<Light>>,
     background: Option<PathBuf>,
+    /// `false` removes the preset's printed markers (a plain gel).
+    markers: Option<bool>,
 }
 
 impl SensorSection {
@@ -315,6 +317,17 @@ impl SensorSection {
             sensor.lights = lights.clone();
         }
         sensor.background = self.background.as_ref().map(|b| dir.join(b));
+        match (self.markers, sensor.markers.is_some()) {
+            (Some(false), _) => sensor.markers = None,
+            (Some(true), false) => {
+                return Err(SceneError::invalid(
+                    path,
+                    "sensor.markers",
+                    format!("preset `{}` has no markers to keep", self.preset),
+                ));
+            }
+            _ => {}
+        }
         sensor.validate(path)?;
         Ok(sensor)
     }

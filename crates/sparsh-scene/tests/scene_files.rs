@@ -194,6 +194,19 @@ fn unknown_preset_lists_the_known_ones() {
 }
 
 #[test]
+fn markers_can_be_removed_but_not_added() {
+    let gs = BASE.replace("\"digit\"", "\"gelsight2017\"");
+    assert!(parse(&gs).unwrap().sensor.markers.is_some());
+    let plain = gs.replace("height_px = 48", "height_px = 48\nmarkers = false");
+    assert!(parse(&plain).unwrap().sensor.markers.is_none());
+    let line = error_of(&BASE.replace("height_px = 48", "height_px = 48\nmarkers = true"));
+    assert!(
+        line.contains("sensor.markers") && line.contains("digit"),
+        "{line}"
+    );
+}
+
+#[test]
 fn trajectory_times_must_increase() {
     let line = error_of(&BASE.replace("time_s = 2.0", "time_s = 0.0"));
     assert!(line.contains("trajectory[1].time_s"), "{line}");

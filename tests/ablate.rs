@@ -1,0 +1,223 @@
+//! `sparsh ablate` end to end with quick settings on Taxim's GelSight pack: every row of the
+//! table (references, CNN, probes on a pretrained and a random encoder, the real ceiling), the
+//! report files, `--resume`, and one-line errors for bad ablation files.
+//!
+//! Skips with a message when the pack is absent, unless `SPARSH_REQUIRE_TAXIM` is set (CI).
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+/// A ViT of two blocks on the CPU recipes' input.
+const RECIPE: &str = r#"
+objective = "mae"
+seed = 0
+[encoder]
+size = "tiny"
+img_size = [96, 72]
+patch_size = 8
+depth = 2
+[optim]
+steps = 10
+batch_size = 8
+"#;
+
+fn checkout() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..")
+}
+
+fn pack() -> Option<PathBuf> {
+    let dir = match std::env::var_os("SPARSH_TAXIM_CALIB") {
+        Some(dir) => PathBuf::from(dir),
+        None => checkout().join("data/taxim/calib"),
+    };
+    let path = dir.join("gelsight/dataPack.npz");
+    if path.is_file() {
+        return Some(path);
+    }
+    assert!(
+        std::env::var_os("SPARSH_REQUIRE_TAXIM").is_none(),
+        "{} is missing and SPARSH_REQUIRE_TAXIM is set",
+        path.display()
+    );
+    eprintln!(
+        "SKIPPED: {} not found (pip download taxim==1.4.1 --no-deps; see README)",
+        path.display()
+    );
+    None
+}
+
+fn sparsh(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_sparsh"))
+        .args(args)
+        .output()
+        .expect("sparsh runs")
+}
+
+fn stderr(out: &Output) -> String {
+    String::from_utf8_lossy(&out.stderr).into_owned()
+}
+
+/// A user error: non-zero exit, one line on stderr naming what is wrong, no panic.
+fn assert_user_error(out: &Output, needle: &str) {
+    let err = stderr(out);
+    assert!(!out.status.success(), "should fail: {err}");
+    assert!(!err.contains("panicked"), "{err}");
+    assert_eq!(err.trim_end().lines().count(), 1, "one line: {err}");
+    assert!(err.contains(needle), "expected `{needle}` in: {err}");
+}
+
+/// The ablation file: the shipped GelSight scene and pack, a base variant with the probes and a
+/// photometric one.
+fn config(dir: &Path, pack: &Path, extra: &str) -> PathBuf {
+    std::fs::write(dir.join("recipe.toml"), RECIPE).unwrap();
+    let recipe = sparsh_ssl::recipe::Recipe::parse(RECIPE).unwrap();
+    let vit = sparsh_bench::run::random_encoder(&recipe, 5).unwrap();
+    sparsh_ssl::weights::save_encoder(&vit, &dir.join("weights.safetensors")).unwrap();
+    let text = format!(
+        r#"scene = "{scene}"
+pack = "{pack}"
+pack_mm_per_px = 0.0295
+seeds = 3
+bootstrap = 200
+[cnn]
+epochs = 3
+batch_size = 16
+lr = 2e-3
+[probe]
+recipe = "recipe.toml"
+weights = "weights.safetensors"
+train = {{ epochs = 3, batch_size = 16, lr = 1e-3 }}
+[real]
+folds = 4
+train = {{ epochs = 3, batch_size = 16, lr = 2e-3 }}
+[[variant]]
+name = "base"
+probe = true
+[[variant]]
+name = "photometric optics"
+set = {{ "optics.model" = "photometric" }}
+remove = ["optics.calibration"]
+{extra}"#,
+        scene = checkout().join("scenes/sim2real_gelsight.toml").display(),
+        pack = pack.display(),
+    );
+    let path = dir.join("ablation.toml");
+    std::fs::write(&path, text).unwrap();
+    path
+}
+
+fn rows(out: &Path) -> Vec<csv::StringRecord> {
+    let mut r = csv::Reader::from_path(out.join("ablation.csv")).unwrap();
+    r.records().map(|x| x.unwrap()).collect()
+}
+
+#[test]
+fn ablate_trains_on_synthetic_frames_scores_real_ones_and_resumes() {
+    let Some(pack) = pack() else { return };
+    let tmp = tempfile::tempdir().unwrap();
+    let cfg = config(tmp.path(), &pack, "");
+    let out = tmp.path().join("run");
+    let (c, o) = (cfg.to_str().unwrap(), out.to_str().unwrap());
+    let run = sparsh(&["ablate", "--config", c, "--out", o, "--quick"]);
+    assert!(run.status.success(), "{}", stderr(&run));
+    let table = rows(&out);
+    let names: Vec<(String, String)> = table
+        .iter()
+        .map(|r| (r[0].to_string(), r[1].to_string()))
+        .collect();
+    let expect = [
+        ("base", "constant"),
+        ("base", "classical"),
+        ("base", "cnn"),
+        ("base", "probe (pretrained)"),
+        ("base", "probe (random)"),
+        ("photometric optics", "cnn"),
+        ("real frames", "cnn"),
+    ];
+    assert_eq!(
+        names,
+        expect.map(|(a, b)| (a.to_string(), b.to_string())).to_vec()
+    );
+    for r in &table {
+        let v = |k: usize| -> f64 { r[k].parse().unwrap() };
+        // medians inside their intervals, shares in [0, 1], 90th percentiles above medians
+        assert!(v(7) <= v(6) + 1e-9 && v(6) <= v(8) + 1e-9, "{r:?}");
+        assert!(v(13) <= v(12) + 1e-9 && v(12) <= v(14) + 1e-9, "{r:?}");
+        assert!(v(9) >= v(6) && v(15) >= v(12), "{r:?}");
+        assert!(
+            (0.0..=1.0).contains(&v(16)) && v(17) >= v(16) && v(17) <= 1.0,
+            "{r:?}"
+        );
+        // quick: one seed for every learned row
+        assert_eq!(&r[4], "1", "{r:?}");
+    }
+    // the constant circle misses the 24 odd frames' centres, spread over most of the frame,
+    // by tens of pixels
+    assert!(table[0][6].parse::<f64>().unwrap() > 30.0, "{:?}", table[0]);
+    for f in [
+        "ablation.md",
+        "ablation.png",
+        "ablation.svg",
+        "ablation.toml",
+    ] {
+        assert!(out.join(f).is_file(), "{f}");
+    }
+    // datasets are removed once scored; the scenes stay
+    assert!(out.join("variants/base/scene.toml").is_file());
+    assert!(!out.join("variants/base/data").exists());
+    // a second run without --resume refuses; with it, every variant is kept as recorded
+    assert_user_error(
+        &sparsh(&["ablate", "--config", c, "--out", o, "--quick"]),
+        "--resume",
+    );
+    let before = std::fs::read(out.join("ablation.csv")).unwrap();
+    let again = sparsh(&["ablate", "--config", c, "--out", o, "--quick", "--resume"]);
+    assert!(again.status.success(), "{}", stderr(&again));
+    assert!(stderr(&again).contains("recorded, kept"));
+    assert_eq!(before, std::fs::read(out.join("ablation.csv")).unwrap());
+}
+
+#[test]
+fn bad_ablation_files_get_one_line_errors() {
+    let Some(pack) = pack() else { return };
+    let tmp = tempfile::tempdir().unwrap();
+    let run = |extra: &str, needle: &str| {
+        let dir = tempfile::tempdir_in(tmp.path()).unwrap();
+        let cfg = config(dir.path(), &pack, extra);
+        let out = dir.path().join("run");
+        assert_user_error(
+            &sparsh(&[
+                "ablate",
+                "--config",
+                cfg.to_str().unwrap(),
+                "--out",
+                out.to_str().unwrap(),
+                "--quick",
+            ]),
+            needle,
+        );
+    };
+    run("colour = 1\n", "colour");
+    run(
+        "[[variant]]\nname = \"no such key\"\nremove = [\"gel.hardness\"]\n",
+        "gel.hardness",
+    );
+    run("[[variant]]\nname = \"Base\"\n", "variant[2].name");
+    let dir = tempfile::tempdir_in(tmp.path()).unwrap();
+    let cfg = config(dir.path(), &pack, "");
+    let text = std::fs::read_to_string(&cfg).unwrap().replace(
+        "weights = \"weights.safetensors\"",
+        "weights = \"missing.safetensors\"",
+    );
+    std::fs::write(&cfg, text).unwrap();
+    assert_user_error(
+        &sparsh(&[
+            "ablate",
+            "--config",
+            cfg.to_str().unwrap(),
+            "--out",
+            dir.path().join("run").to_str().unwrap(),
+        ]),
+        "probe.weights",
+    );
+}
