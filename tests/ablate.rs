@@ -5,21 +5,9 @@
 //! Skips with a message when the pack is absent, unless `SPARSH_REQUIRE_TAXIM` is set (CI).
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
 
-/// A ViT of two blocks on the CPU recipes' input.
-const RECIPE: &str = r#"
-objective = "mae"
-seed = 0
-[encoder]
-size = "tiny"
-img_size = [96, 72]
-patch_size = 8
-depth = 2
-[optim]
-steps = 10
-batch_size = 8
-"#;
+mod common;
+use common::{RECIPE, assert_user_error, sparsh, stderr};
 
 fn checkout() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..")
@@ -44,26 +32,6 @@ fn pack() -> Option<PathBuf> {
         path.display()
     );
     None
-}
-
-fn sparsh(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_sparsh"))
-        .args(args)
-        .output()
-        .expect("sparsh runs")
-}
-
-fn stderr(out: &Output) -> String {
-    String::from_utf8_lossy(&out.stderr).into_owned()
-}
-
-/// A user error: non-zero exit, one line on stderr naming what is wrong, no panic.
-fn assert_user_error(out: &Output, needle: &str) {
-    let err = stderr(out);
-    assert!(!out.status.success(), "should fail: {err}");
-    assert!(!err.contains("panicked"), "{err}");
-    assert_eq!(err.trim_end().lines().count(), 1, "one line: {err}");
-    assert!(err.contains(needle), "expected `{needle}` in: {err}");
 }
 
 /// The ablation file: the shipped GelSight scene and pack, a base variant with the probes and a
@@ -132,6 +100,7 @@ fn ablate_trains_on_synthetic_frames_scores_real_ones_and_resumes() {
         ("base", "probe (pretrained)"),
         ("base", "probe (random)"),
         ("photometric optics", "cnn"),
+        ("real frames", "constant"),
         ("real frames", "cnn"),
     ];
     assert_eq!(

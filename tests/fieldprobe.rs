@@ -2,7 +2,10 @@
 //! decoders, the references, the report files; training reads no field; one-line errors.
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Output;
+
+mod common;
+use common::{RECIPE, assert_user_error, sparsh, stderr};
 
 /// DIGIT (markerless) and GelSight 2017 (markers) presses and slides at 160 × 120 with every
 /// field at stride 2; held-out cylinders.
@@ -58,20 +61,6 @@ depth_mm = [0.3, 0.8]
 slide_mm = [0.5, 2.0]
 "#;
 
-/// A ViT of two blocks on the CPU recipes' input.
-const RECIPE: &str = r#"
-objective = "mae"
-seed = 0
-[encoder]
-size = "tiny"
-img_size = [96, 72]
-patch_size = 8
-depth = 2
-[optim]
-steps = 10
-batch_size = 8
-"#;
-
 const CONFIG: &str = r#"
 recipe = "recipe.toml"
 bootstrap = 50
@@ -81,26 +70,6 @@ channels = 8
 supervised = true
 random_draws = 2
 "#;
-
-fn sparsh(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_sparsh"))
-        .args(args)
-        .output()
-        .expect("sparsh runs")
-}
-
-fn stderr(out: &Output) -> String {
-    String::from_utf8_lossy(&out.stderr).into_owned()
-}
-
-/// A user error: non-zero exit, one line on stderr naming what is wrong, no panic.
-fn assert_user_error(out: &Output, needle: &str) {
-    let err = stderr(out);
-    assert!(!out.status.success(), "should fail: {err}");
-    assert!(!err.contains("panicked"), "{err}");
-    assert_eq!(err.trim_end().lines().count(), 1, "one line: {err}");
-    assert!(err.contains(needle), "expected `{needle}` in: {err}");
-}
 
 /// Writes the recipe, weights of its architecture, the config and the dataset into `dir`.
 fn setup(dir: &Path) -> PathBuf {

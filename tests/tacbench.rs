@@ -2,7 +2,9 @@
 //! encoder row, the report files, resume, and one-line errors for bad configs.
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+
+mod common;
+use common::{RECIPE, assert_user_error, sparsh, stderr};
 
 /// Two families (the texture task's two classes), press-and-slide and twist, with held-out
 /// cylinders: force, slip, pose and grasp labels on every frame.
@@ -58,40 +60,6 @@ split = "test"
 kind = "twist"
 depth_mm = [0.3, 0.8]
 "#;
-
-/// A ViT of two blocks on the CPU recipes' input.
-const RECIPE: &str = r#"
-objective = "mae"
-seed = 0
-[encoder]
-size = "tiny"
-img_size = [96, 72]
-patch_size = 8
-depth = 2
-[optim]
-steps = 10
-batch_size = 8
-"#;
-
-fn sparsh(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_sparsh"))
-        .args(args)
-        .output()
-        .expect("sparsh runs")
-}
-
-fn stderr(out: &Output) -> String {
-    String::from_utf8_lossy(&out.stderr).into_owned()
-}
-
-/// A user error: non-zero exit, one line on stderr naming what is wrong, no panic.
-fn assert_user_error(out: &Output, needle: &str) {
-    let err = stderr(out);
-    assert!(!out.status.success(), "should fail: {err}");
-    assert!(!err.contains("panicked"), "{err}");
-    assert_eq!(err.trim_end().lines().count(), 1, "one line: {err}");
-    assert!(err.contains(needle), "expected `{needle}` in: {err}");
-}
 
 fn config(tasks: &[(&str, &str)], budgets: &str) -> String {
     let mut s = format!(

@@ -50,6 +50,8 @@ pub enum RowKind {
     Constant,
     /// The classical detector tuned on synthetic frames.
     Classical,
+    /// The mean circle of the pack's frames that are not scored.
+    RealConstant,
     /// The CNN trained on the pack's other frames.
     RealCeiling,
 }
@@ -61,6 +63,7 @@ impl RowKind {
             RowKind::Synthetic => "synthetic",
             RowKind::Constant => "constant",
             RowKind::Classical => "classical",
+            RowKind::RealConstant => "real constant",
             RowKind::RealCeiling => "real ceiling",
         }
     }
@@ -253,6 +256,7 @@ pub fn run(
         crate::run::write_atomic(&record, &json)?;
         row
     };
+    rows.push(real_constant(&pack, &test, &real, &eff));
     rows.push(ceiling);
     report::write(out, &rows)?;
     Ok(rows)
@@ -525,64 +529,16 @@ fn run_variant(
             t,
         ));
     }
-    let t = Instant::now();
-    let mut errors = Vec::new();
-    let mut epochs = Vec::new();
-    let mut val_preds = Vec::new();
-    for seed in 0..eff.seeds as u64 {
-        let (preds, fitted) = cnn_seed(
-            &frames,
-            &train_pairs,
-            &val_pairs,
-            real,
-            pack_size,
-            eff.cnn,
-            seed,
-        );
-        errors.push(errors_of(&preds, &real.circles));
-        epochs.push(fitted.best_epoch);
-        val_preds.extend(fitted.val_preds);
-    }
-    let r = row(
-        "cnn",
-        RowKind::Synthetic,
-        eff.seeds,
-        &epochs,
-        &errors,
-        &val_preds,
-        t,
-    );
-    log(&summary(&r));
-    rows.push(r);
-    if let (Some(enc), Some(popts)) = (probe_on, eff.probe) {
-        // tokens standardized with the synthetic training frames' statistics
-        let tokens_of = |vit: &Vit| {
-            let (mut syn, dims) = enc.encode(vit, &inputs);
-            let (mut rea, _) = enc.encode(vit, real_inputs);
-            let stats = RowStats::of(&syn, dims[1] * dims[2], &train);
-            stats.apply(&mut syn);
-            stats.apply(&mut rea);
-            (syn, rea, dims)
-        };
-        let mut probe_row = |name: &str,
-                             tokens: &dyn Fn(u64) -> Result<PairedTokens, Error>|
-         -> Result<(), Error> {
+    // a learned row: every seed's real predictions, chosen epoch and validation predictions
+    let mut learned =
+        |name: &str, train_seed: &dyn Fn(u64) -> Result<Seeded, Error>| -> Result<(), Error> {
             let t = Instant::now();
-            let mut errors = Vec::new();
-            let mut epochs = Vec::new();
-            let mut val_preds = Vec::new();
+            let (mut errors, mut epochs, mut val_preds) = (Vec::new(), Vec::new(), Vec::new());
             for seed in 0..eff.seeds as u64 {
-                let (preds, fitted) = probe_seed(
-                    &tokens(seed)?,
-                    &train_pairs,
-                    &val_pairs,
-                    pack_size,
-                    popts,
-                    seed,
-                );
+                let (preds, epoch, val) = train_seed(seed)?;
                 errors.push(errors_of(&preds, &real.circles));
-                epochs.push(fitted.best_epoch);
-                val_preds.extend(fitted.val_preds);
+                epochs.push(epoch);
+                val_preds.extend(val);
             }
             let r = row(
                 name,
@@ -597,12 +553,42 @@ fn run_variant(
             rows.push(r);
             Ok(())
         };
+    learned("cnn", &|seed| {
+        let (preds, fitted) = cnn_seed(
+            &frames,
+            &train_pairs,
+            &val_pairs,
+            real,
+            pack_size,
+            eff.cnn,
+            seed,
+        );
+        Ok((preds, fitted.best_epoch, fitted.val_preds))
+    })?;
+    if let (Some(enc), Some(popts)) = (probe_on, eff.probe) {
+        // tokens standardized with the synthetic training frames' statistics
+        let tokens_of = |vit: &Vit| {
+            let (mut syn, dims) = enc.encode(vit, &inputs);
+            let (mut rea, _) = enc.encode(vit, real_inputs);
+            let stats = RowStats::of(&syn, dims[1] * dims[2], &train);
+            stats.apply(&mut syn);
+            stats.apply(&mut rea);
+            (syn, rea, dims)
+        };
+        let probe = |tokens: &PairedTokens, seed: u64| {
+            let (preds, fitted) =
+                probe_seed(tokens, &train_pairs, &val_pairs, pack_size, popts, seed);
+            Ok((preds, fitted.best_epoch, fitted.val_preds))
+        };
         if let Some(vit) = &enc.pretrained {
             let once = tokens_of(vit);
-            probe_row("probe (pretrained)", &|_| Ok(once.clone()))?;
+            learned("probe (pretrained)", &|seed| probe(&once, seed))?;
         }
-        probe_row("probe (random)", &|seed| {
-            Ok(tokens_of(&crate::run::random_encoder(&enc.recipe, seed)?))
+        learned("probe (random)", &|seed| {
+            probe(
+                &tokens_of(&crate::run::random_encoder(&enc.recipe, seed)?),
+                seed,
+            )
         })?;
     }
     if !config.keep_data {
@@ -625,6 +611,9 @@ fn token_forward(
         m.forward(Tensor::<1>::from_floats(x.as_slice(), device).reshape([rows.len(), t, d]))
     }
 }
+
+/// One training seed's real predictions, chosen epoch and validation predictions.
+type Seeded = (Vec<Circle>, usize, Vec<Circle>);
 
 /// Standardized tokens of the synthetic frames and of the real ones, and their `[n, t, d]`
 /// (n of the synthetic set).
@@ -671,6 +660,39 @@ fn summary(r: &Row) -> String {
         "{}: {}: real centre {:.1} px, radius {:.1} % (medians){val}; {:.0} s",
         r.variant, r.model, r.scores.centre_median_px, r.scores.radius_median_pct, r.seconds
     )
+}
+
+/// What is trivial on the pack: the mean circle of its frames that are not scored (the even
+/// ones when the odd are), predicted for every scored frame.
+fn real_constant(
+    pack: &CalibrationPack,
+    test: &[usize],
+    real: &CircleFrames,
+    eff: &Effective,
+) -> Row {
+    let start = Instant::now();
+    let (w, h) = pack.size_px();
+    let others: Vec<Circle> = (0..pack.frames.len())
+        .filter(|k| !test.contains(k))
+        .map(|k| Circle {
+            cx_px: pack.centers_px[k][0],
+            cy_px: pack.centers_px[k][1],
+            r_px: pack.radii_px[k],
+        })
+        .collect();
+    let mean = models::CircleScale::of(&others, [w, h]).mean();
+    let errors = errors_of(&vec![mean; real.len()], &real.circles);
+    Row {
+        variant: "real frames".into(),
+        model: "constant".into(),
+        kind: RowKind::RealConstant,
+        train_frames: others.len(),
+        seeds: 1,
+        mean_best_epoch: 0.0,
+        scores: metrics::score(&[errors], eff.bootstrap, 7),
+        synthetic_val: None,
+        seconds: start.elapsed().as_secs_f64(),
+    }
 }
 
 /// A frame mirrored: `flip` bit 0 mirrors columns, bit 1 rows (the circle follows).

@@ -40,7 +40,8 @@ fn ordered(rows: &[Row]) -> Vec<&Row> {
         RowKind::Constant => 0,
         RowKind::Classical => 1,
         RowKind::Synthetic => 2,
-        RowKind::RealCeiling => 3,
+        RowKind::RealConstant => 3,
+        RowKind::RealCeiling => 4,
     };
     let mut v: Vec<&Row> = rows.iter().collect();
     v.sort_by_key(|r| rank(r));
@@ -51,6 +52,7 @@ fn label(r: &Row) -> String {
     match r.kind {
         RowKind::Synthetic => format!("{}: {}", r.variant, r.model),
         RowKind::RealCeiling => "real frames (held out): cnn".into(),
+        RowKind::RealConstant => format!("constant (real frames not scored, {})", r.train_frames),
         k => format!("{} ({} frames)", k.name(), r.variant),
     }
 }
@@ -137,6 +139,7 @@ fn colour(kind: RowKind) -> RGBColor {
     match kind {
         RowKind::Synthetic => RGBColor(40, 100, 180),
         RowKind::RealCeiling => RGBColor(40, 150, 70),
+        RowKind::RealConstant => RGBColor(150, 200, 160),
         _ => RGBColor(140, 140, 140),
     }
 }
@@ -187,6 +190,19 @@ fn draw<DB: DrawingBackend>(
     ];
     let n = rows.len();
     for (panel, title, metric, labels) in panels {
+        // rows that miss by far more than the typical one (the constant predictor, models that
+        // do not transfer) are cut at the axis, four times the median row, and labelled
+        let mut values: Vec<f64> = rows
+            .iter()
+            .map(|r| metric(r).0)
+            .filter(|v| v.is_finite())
+            .collect();
+        values.sort_by(f64::total_cmp);
+        let typical = if values.is_empty() {
+            1.0
+        } else {
+            crate::stats::quantile(&values, 0.5)
+        };
         let x1 = rows
             .iter()
             .map(|r| {
@@ -194,7 +210,8 @@ fn draw<DB: DrawingBackend>(
                 v.max(ci[1])
             })
             .filter(|v| v.is_finite())
-            .fold(1.0f64, f64::max)
+            .fold(1e-3f64, f64::max)
+            .min(4.0 * typical.max(1e-3))
             * 1.05;
         let mut c = ChartBuilder::on(&panel)
             .caption(title, (SANS, 20))
@@ -226,10 +243,19 @@ fn draw<DB: DrawingBackend>(
             }
             let col = colour(r.kind);
             c.draw_series(std::iter::once(Rectangle::new(
-                [(0.0, y - 0.35), (v, y + 0.35)],
+                [(0.0, y - 0.35), (v.min(x1), y + 0.35)],
                 col.mix(0.75).filled(),
             )))
             .map_err(chart_err)?;
+            if v > x1 {
+                c.draw_series(std::iter::once(Text::new(
+                    format!("{v:.1} →"),
+                    (0.8 * x1, y + 0.1),
+                    (SANS, 15).into_font(),
+                )))
+                .map_err(chart_err)?;
+                continue;
+            }
             if ci[0].is_finite() && ci[1].is_finite() {
                 c.draw_series(std::iter::once(PathElement::new(
                     vec![(ci[0], y), (ci[1], y)],
