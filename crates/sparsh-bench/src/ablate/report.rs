@@ -52,7 +52,7 @@ fn label(r: &Row) -> String {
     match r.kind {
         RowKind::Synthetic => format!("{}: {}", r.variant, r.model),
         RowKind::RealCeiling => "real frames (held out): cnn".into(),
-        RowKind::RealConstant => format!("constant (real frames not scored, {})", r.train_frames),
+        RowKind::RealConstant => format!("constant ({} real frames not scored)", r.train_frames),
         k => format!("{} ({} frames)", k.name(), r.variant),
     }
 }
