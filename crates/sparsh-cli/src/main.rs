@@ -128,8 +128,8 @@ enum Command {
         #[arg(long)]
         pixmm: f64,
         /// Frames to fit on.
-        #[arg(long, value_enum, default_value = "even")]
-        frames: optics::FrameSet,
+        #[arg(long, default_value = "even")]
+        frames: sparsh_optics::FrameSet,
         /// Calibration directory to write.
         #[arg(long)]
         out: PathBuf,
@@ -172,8 +172,8 @@ enum Command {
         #[arg(long)]
         sensor: Option<String>,
         /// Frames to score.
-        #[arg(long, value_enum, default_value = "odd")]
-        frames: optics::FrameSet,
+        #[arg(long, default_value = "odd")]
+        frames: sparsh_optics::FrameSet,
         /// Print JSON (summary and per-frame scores).
         #[arg(long)]
         json: bool,

@@ -8,31 +8,8 @@ use sparsh_optics::sim2real::{
     BallSetup, FitOptions, FrameScore, ShadowSearch, calibrate_pack, calibrate_pack_with_shadows,
     pack_renderer, render_and_score, summarize,
 };
-use sparsh_optics::{Calibration, CalibrationPack};
+use sparsh_optics::{Calibration, CalibrationPack, FrameSet};
 use sparsh_scene::SensorConfig;
-
-/// Which frames of a pack to use.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
-pub enum FrameSet {
-    /// Frames 0, 2, 4, …
-    Even,
-    /// Frames 1, 3, 5, …
-    Odd,
-    /// Every frame.
-    All,
-}
-
-impl FrameSet {
-    fn indices(self, count: usize) -> Vec<usize> {
-        (0..count)
-            .filter(|k| match self {
-                FrameSet::Even => k % 2 == 0,
-                FrameSet::Odd => k % 2 == 1,
-                FrameSet::All => true,
-            })
-            .collect()
-    }
-}
 
 fn setup(ball_radius_mm: f64, mm_per_px: f64) -> Result<BallSetup> {
     if !(ball_radius_mm.is_finite() && ball_radius_mm > 0.0) {

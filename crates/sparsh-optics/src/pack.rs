@@ -10,6 +10,45 @@ use std::path::{Path, PathBuf};
 
 use image::RgbImage;
 
+/// A selection of a pack's frames: calibrations fit on the even ones and are scored on the odd
+/// ones, so no scored frame was seen by the fit.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum FrameSet {
+    /// Frames 0, 2, 4, …
+    Even,
+    /// Frames 1, 3, 5, …
+    Odd,
+    /// Every frame.
+    All,
+}
+
+impl FrameSet {
+    /// The selected indices among `count` frames.
+    pub fn indices(self, count: usize) -> Vec<usize> {
+        (0..count)
+            .filter(|k| match self {
+                FrameSet::Even => k % 2 == 0,
+                FrameSet::Odd => k % 2 == 1,
+                FrameSet::All => true,
+            })
+            .collect()
+    }
+}
+
+impl std::str::FromStr for FrameSet {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "even" => Ok(FrameSet::Even),
+            "odd" => Ok(FrameSet::Odd),
+            "all" => Ok(FrameSet::All),
+            _ => Err(format!("`{s}` is not a frame set (even, odd or all)")),
+        }
+    }
+}
+
 /// A pack that cannot be used: one line naming the file, the array and what is wrong.
 #[derive(Debug, thiserror::Error)]
 #[error("{}: {field}: {message}", path.display())]
@@ -206,4 +245,23 @@ fn read_f64<R: std::io::Read + std::io::Seek>(
 
 fn conv<T: Into<f64> + Copy>(v: Vec<T>) -> Vec<f64> {
     v.iter().map(|&x| x.into()).collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn frame_sets_pick_indices_and_parse() {
+        assert_eq!(FrameSet::Odd.indices(5), vec![1, 3]);
+        assert_eq!(FrameSet::Even.indices(5), vec![0, 2, 4]);
+        assert_eq!(FrameSet::All.indices(2), vec![0, 1]);
+        assert_eq!("odd".parse::<FrameSet>(), Ok(FrameSet::Odd));
+        assert!(
+            "evens"
+                .parse::<FrameSet>()
+                .unwrap_err()
+                .contains("even, odd or all")
+        );
+    }
 }

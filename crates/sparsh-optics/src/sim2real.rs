@@ -205,15 +205,26 @@ pub fn calibrate_pack(
     Ok(Calibration {
         map,
         background,
-        provenance: serde_json::json!({
-            "frames": frames,
-            "ball_radius_mm": setup.ball_radius_mm,
-            "mm_per_px": setup.mm_per_px,
-            "nodes": options.nodes,
-            "smoothness": options.smoothness,
-            "fit_pixels": total.samples(),
-        }),
+        provenance: provenance(frames, setup, options, total.samples()),
         shadows: None,
+    })
+}
+
+/// What `map.json` records of a fit: the frames, the ball and pixel pitch, the table's size
+/// and smoothness, and how many pixels it was fitted on.
+fn provenance(
+    frames: &[usize],
+    setup: BallSetup,
+    options: FitOptions,
+    fit_pixels: usize,
+) -> serde_json::Value {
+    serde_json::json!({
+        "frames": frames,
+        "ball_radius_mm": setup.ball_radius_mm,
+        "mm_per_px": setup.mm_per_px,
+        "nodes": options.nodes,
+        "smoothness": options.smoothness,
+        "fit_pixels": fit_pixels,
     })
 }
 
@@ -433,20 +444,17 @@ pub fn calibrate_pack_with_shadows(
         Calibration {
             map,
             background,
-            provenance: serde_json::json!({
-                "frames": frames,
-                "ball_radius_mm": setup.ball_radius_mm,
-                "mm_per_px": setup.mm_per_px,
-                "nodes": options.nodes,
-                "smoothness": options.smoothness,
-                "fit_pixels": fit.iter().map(|f| f.cells.len()).sum::<usize>(),
-                "shadow_search": {
+            provenance: {
+                let fit_pixels = fit.iter().map(|f| f.cells.len()).sum();
+                let mut p = provenance(frames, setup, options, fit_pixels);
+                p["shadow_search"] = serde_json::json!({
                     "common_z_mm": search.common_z_mm,
                     "refine_mm": search.refine_mm,
                     "best": best,
                     "trials": trials,
-                },
-            }),
+                });
+                p
+            },
             shadows: Some(FittedLights {
                 sensor: sensor.name.clone(),
                 lights,

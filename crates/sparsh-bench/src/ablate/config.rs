@@ -7,33 +7,10 @@ use std::path::{Path, PathBuf};
 
 use serde::Deserialize;
 
+use sparsh_optics::FrameSet;
+
 use super::models::TrainOptions;
 use crate::Error;
-
-/// Which of the pack's frames are scored.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum FrameSet {
-    /// Odd indices (the calibrations shipped are fitted on the even ones).
-    Odd,
-    /// Even indices.
-    Even,
-    /// Every frame.
-    All,
-}
-
-impl FrameSet {
-    /// The indices among `n` frames.
-    pub fn indices(self, n: usize) -> Vec<usize> {
-        (0..n)
-            .filter(|k| match self {
-                FrameSet::Odd => k % 2 == 1,
-                FrameSet::Even => k % 2 == 0,
-                FrameSet::All => true,
-            })
-            .collect()
-    }
-}
 
 /// `[probe]`: the attentive probe on a frozen encoder (pretrained and randomly initialised).
 #[derive(Debug, Clone, Deserialize)]
@@ -399,12 +376,5 @@ mod tests {
         assert_eq!(t["randomize"]["noise_std"].as_float(), Some(1.0));
         assert!(remove_path(&mut t, "gel.friction").is_err());
         assert!(set_path(&mut t, "solver.kind", toml::Value::Integer(1)).is_err());
-    }
-
-    #[test]
-    fn frame_sets_pick_indices() {
-        assert_eq!(FrameSet::Odd.indices(5), vec![1, 3]);
-        assert_eq!(FrameSet::Even.indices(5), vec![0, 2, 4]);
-        assert_eq!(FrameSet::All.indices(2), vec![0, 1]);
     }
 }
