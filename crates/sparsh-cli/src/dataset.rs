@@ -7,7 +7,6 @@ use std::sync::Mutex;
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
-use indicatif::{ProgressBar, ProgressStyle};
 use rayon::prelude::*;
 use sparsh_contact::Fields;
 use sparsh_data::{
@@ -19,11 +18,26 @@ use sparsh_scene::{
 };
 use sparsh_sim::{Frame, Simulator};
 
+use crate::progress::Progress;
+
 /// `--shard K/N`: this run makes the sequences s with s mod N = K (K from 0).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Shard {
     index: usize,
     count: usize,
+}
+
+impl Shard {
+    /// Whether sequence `s` belongs to this shard.
+    fn has(self, s: usize) -> bool {
+        s % self.count == self.index
+    }
+}
+
+impl std::fmt::Display for Shard {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{}/{}", self.index, self.count)
+    }
 }
 
 impl FromStr for Shard {
@@ -236,10 +250,21 @@ pub fn generate(scene_path: &Path, out: &Path, options: GenerateOptions) -> Resu
         }
     };
     let dataset = Dataset::open(out, &identity, mode)?;
-    let todo: Vec<usize> = (0..identity.sequences)
-        .filter(|s| options.shard.is_none_or(|sh| s % sh.count == sh.index))
+    if let Some(shard) = options.shard {
+        dataset.record_shard_layout(shard.count)?;
+    }
+    let mine: Vec<usize> = (0..identity.sequences)
+        .filter(|&s| options.shard.is_none_or(|sh| sh.has(s)))
+        .collect();
+    let mut todo: Vec<usize> = mine
+        .iter()
+        .copied()
         .filter(|&s| !dataset.has_part(s))
         .collect();
+    if options.resume {
+        todo.extend(damaged_sequences(&dataset, &mine, out)?);
+        todo.sort_unstable();
+    }
     let mut sequences: Vec<SequenceScene> = todo
         .iter()
         .map(|&s| spec.sequence(s))
@@ -260,18 +285,13 @@ pub fn generate(scene_path: &Path, out: &Path, options: GenerateOptions) -> Resu
         scene.mechanics_stride = stride;
     }
     let frames: usize = sequences.iter().map(|s| s.scene.frames().len()).sum();
-    let progress = ProgressBar::new(frames as u64).with_style(
-        ProgressStyle::with_template(
-            "{elapsed_precise} {bar:40} {pos}/{len} frames, {per_sec}, eta {eta}",
-        )
-        .expect("valid template"),
-    );
+    let progress = Progress::new("generate", "frame", frames as u64);
     let totals = Mutex::new(StageTotals::default());
     let start = Instant::now();
     sequences
         .into_par_iter()
         .try_for_each(|seq| write_sequence(&dataset, seq, gpu.as_ref(), &progress, &totals))?;
-    progress.finish_and_clear();
+    progress.finish();
     let wall_s = start.elapsed().as_secs_f64();
     let stages = *totals.lock().expect("no poisoned lock");
     if frames > 0 {
@@ -295,6 +315,38 @@ pub fn generate(scene_path: &Path, out: &Path, options: GenerateOptions) -> Resu
         wall_s,
         stages,
     })
+}
+
+/// A recorded sequence's check: files checked and the problems found.
+type PartCheck = (usize, Vec<sparsh_data::Problem>);
+
+/// The recorded sequences among `sequences` whose files (or record) `verify` would flag, each
+/// named on stderr with its first problem: a resumed run renders them again.
+fn damaged_sequences(dataset: &Dataset, sequences: &[usize], out: &Path) -> Result<Vec<usize>> {
+    // a manifest that cannot be read is rewritten when the run finishes
+    let manifest = sparsh_data::read_manifest(out).ok().flatten();
+    let checks: Vec<Option<PartCheck>> = sequences
+        .par_iter()
+        .map(|&s| dataset.check_part(s, manifest.as_ref()))
+        .collect();
+    let mut damaged = Vec::new();
+    for (&s, check) in sequences.iter().zip(checks) {
+        let Some((_, problems)) = check else { continue };
+        let Some(first) = problems.first() else {
+            continue;
+        };
+        let more = match problems.len() {
+            1 => String::new(),
+            n => format!(" and {} more", n - 1),
+        };
+        eprintln!(
+            "{}: {}{more}; rendering sequence {s} again",
+            out.join(&first.file).display(),
+            first.what
+        );
+        damaged.push(s);
+    }
+    Ok(damaged)
 }
 
 /// `sparsh bench SCENE`: generates the scene once per solver rung and mechanics stride into a
@@ -346,7 +398,7 @@ fn write_sequence(
     dataset: &Dataset,
     seq: SequenceScene,
     gpu: Option<&GpuContext>,
-    progress: &ProgressBar,
+    progress: &Progress,
     totals: &Mutex<StageTotals>,
 ) -> Result<()> {
     let output = seq.scene.output.clone();
@@ -429,10 +481,141 @@ fn write_sequence(
     Ok(())
 }
 
-/// `sparsh verify DIR`: checks every checksum in the manifest.
-pub fn verify(dir: &Path) -> Result<()> {
-    let (checked, problems) = sparsh_data::verify(dir)?;
-    for p in &problems {
+/// `sparsh verify DIR`: checks every checksum in the manifest of a complete dataset; on a
+/// dataset still being generated (no manifest yet) or with `--shard`, checks the files of every
+/// recorded sequence against its record, says which shards are done and names the missing ones.
+/// Fails on a missing or corrupt file, and, with `complete`, when anything asked for is not done.
+pub fn verify(dir: &Path, shard: Option<Shard>, complete: bool) -> Result<()> {
+    let manifest = sparsh_data::read_manifest(dir)?;
+    if manifest.is_some() && shard.is_none() {
+        let (checked, problems) = sparsh_data::verify(dir)?;
+        report_problems(dir, &problems, checked)?;
+        println!("{}: all {checked} files match the manifest", dir.display());
+        return Ok(());
+    }
+    let identity = sparsh_data::read_identity(dir)?;
+    let sequences = identity.sequences;
+    let layout = match shard {
+        Some(shard) => Some(shard),
+        None => sparsh_data::read_shard_layout(dir)?.map(|l| Shard {
+            index: 0,
+            count: l.count,
+        }),
+    };
+    let wanted: Vec<usize> = (0..sequences)
+        .filter(|&s| shard.is_none_or(|sh| sh.has(s)))
+        .collect();
+    let checks: Vec<Option<PartCheck>> = wanted
+        .par_iter()
+        .map(|&s| sparsh_data::check_part(dir, s, manifest.as_ref()))
+        .collect();
+    let done: Vec<usize> = wanted
+        .iter()
+        .zip(&checks)
+        .filter(|(_, c)| c.is_some())
+        .map(|(&s, _)| s)
+        .collect();
+    let (checked, problems) =
+        checks
+            .into_iter()
+            .flatten()
+            .fold((0, Vec::new()), |(n, mut all), (k, p)| {
+                all.extend(p);
+                (n + k, all)
+            });
+    let missing_what = match (shard, layout) {
+        (Some(shard), _) => {
+            let state = if done.len() == wanted.len() {
+                "done"
+            } else if done.is_empty() {
+                "not run"
+            } else {
+                "partly done"
+            };
+            println!(
+                "{}: shard {shard}: {state} ({} of {} sequences recorded)",
+                dir.display(),
+                done.len(),
+                wanted.len()
+            );
+            (done.len() < wanted.len()).then(|| format!("shard {shard}"))
+        }
+        (None, Some(layout)) => {
+            let n = layout.count;
+            let recorded = |k: usize| done.iter().filter(|&&s| s % n == k).count();
+            let of_shard = |k: usize| (0..sequences).filter(|&s| s % n == k).count();
+            let (mut full, mut partly, mut none) = (Vec::new(), Vec::new(), Vec::new());
+            for k in 0..n {
+                match (recorded(k), of_shard(k)) {
+                    (r, all) if r == all => full.push(k),
+                    (0, _) => none.push(k),
+                    (r, all) => partly.push(format!("{k} ({r} of {all} sequences)")),
+                }
+            }
+            println!(
+                "{}: {} of {n} shards done: {}",
+                dir.display(),
+                full.len(),
+                list_or_none(&ranges(&full))
+            );
+            if !partly.is_empty() {
+                println!(
+                    "{}: shards partly done: {}",
+                    dir.display(),
+                    partly.join(", ")
+                );
+            }
+            if !none.is_empty() {
+                println!(
+                    "{}: missing shards (of {n}): {}",
+                    dir.display(),
+                    ranges(&none)
+                );
+            }
+            (!none.is_empty() || !partly.is_empty())
+                .then(|| format!("{} of {n} shards", n - full.len()))
+        }
+        (None, None) => {
+            let missing: Vec<usize> = (0..sequences).filter(|s| !done.contains(s)).collect();
+            println!(
+                "{}: {} of {sequences} sequences done",
+                dir.display(),
+                done.len()
+            );
+            if !missing.is_empty() {
+                println!("{}: missing sequences: {}", dir.display(), ranges(&missing));
+            }
+            (!missing.is_empty()).then(|| format!("{} of {sequences} sequences", missing.len()))
+        }
+    };
+    report_problems(dir, &problems, checked)?;
+    if done.is_empty() {
+        println!(
+            "{}: no sequence recorded yet: no file to check",
+            dir.display()
+        );
+    } else {
+        println!(
+            "{}: all {checked} files of the done sequences match their records{}",
+            dir.display(),
+            if manifest.is_some() {
+                " and the manifest"
+            } else {
+                ""
+            }
+        );
+    }
+    if let Some(what) = missing_what
+        && complete
+    {
+        bail!("{}: not complete: {what} missing", dir.display());
+    }
+    Ok(())
+}
+
+/// Prints each problem on stdout; fails when there is one.
+fn report_problems(dir: &Path, problems: &[sparsh_data::Problem], checked: usize) -> Result<()> {
+    for p in problems {
         println!("{}: {}", dir.join(&p.file).display(), p.what);
     }
     if !problems.is_empty() {
@@ -442,8 +625,30 @@ pub fn verify(dir: &Path) -> Result<()> {
             problems.len()
         );
     }
-    println!("{}: all {checked} files match the manifest", dir.display());
     Ok(())
+}
+
+/// `0-2, 5, 7-9`: sorted indices as ranges.
+fn ranges(indices: &[usize]) -> String {
+    let mut parts: Vec<String> = Vec::new();
+    let mut i = 0;
+    while i < indices.len() {
+        let mut j = i;
+        while j + 1 < indices.len() && indices[j + 1] == indices[j] + 1 {
+            j += 1;
+        }
+        parts.push(if j == i {
+            indices[i].to_string()
+        } else {
+            format!("{}-{}", indices[i], indices[j])
+        });
+        i = j + 1;
+    }
+    parts.join(", ")
+}
+
+fn list_or_none(text: &str) -> &str {
+    if text.is_empty() { "none" } else { text }
 }
 
 fn manifest(spec: &DatasetSpec, identity: Identity) -> Manifest {
@@ -503,4 +708,16 @@ fn exr_bytes(fields: &Fields, output: &OutputSpec) -> Result<Vec<u8>> {
         output.field_precision,
     )
     .map_err(anyhow::Error::msg)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn indices_print_as_ranges() {
+        assert_eq!(ranges(&[0, 1, 2, 5, 7, 8, 9]), "0-2, 5, 7-9");
+        assert_eq!(ranges(&[3]), "3");
+        assert_eq!(ranges(&[]), "");
+    }
 }

@@ -287,7 +287,8 @@ pub fn bench(
 ) -> Result<()> {
     use sparsh_optics::{PhotometricRenderer, Renderer, Surface, photometric::shadow_settings};
     anyhow::ensure!(repeats > 0, "--repeats must be at least 1");
-    let calibration = Calibration::load(calib).map_err(|e| anyhow!("{}: {e}", calib.display()))?;
+    // the error names the file (CALIB/map.json)
+    let calibration = Calibration::load(calib).map_err(anyhow::Error::msg)?;
     let preset = sparsh_scene::SensorConfig::preset("gelsight2017").expect("shipped preset");
     let gpu = device.context()?;
     let median_ms = |renderer: &Renderer, surface: &Surface| -> Result<f64> {

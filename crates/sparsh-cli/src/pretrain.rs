@@ -3,9 +3,13 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::Result;
-use indicatif::{ProgressBar, ProgressStyle};
 use sparsh_ssl::recipe::Recipe;
-use sparsh_ssl::train::{RunOptions, probe_encoders, probe_patches, probe_random_encoders, run};
+use sparsh_ssl::train::{
+    RunOptions, probe_encoders_with_progress, probe_patches_with_progress,
+    probe_random_encoders_with_progress, run,
+};
+
+use crate::progress::Progress;
 
 /// Runs (or resumes) the recipe `config` on `data`, writing into `out`.
 pub fn pretrain(
@@ -17,13 +21,7 @@ pub fn pretrain(
     max_steps: Option<usize>,
 ) -> Result<()> {
     let recipe = Recipe::load(config)?;
-    let bar = ProgressBar::new(recipe.optim.steps as u64);
-    bar.set_style(
-        ProgressStyle::with_template(
-            "{bar:30} {pos}/{len} [{elapsed_precise}<{eta_precise}] {msg}",
-        )
-        .expect("valid template"),
-    );
+    let bar = Progress::new("pretrain", "step", recipe.optim.steps as u64);
     let opts = RunOptions {
         data,
         probe_data,
@@ -40,11 +38,11 @@ pub fn pretrain(
             );
         }
         if r.loss.is_finite() {
-            bar.set_position(r.step as u64 + 1);
             bar.set_message(format!(
                 "loss {:.4} lr {:.2e} {:.2} s/step{probe_msg}",
                 r.loss, r.lr, r.step_s
             ));
+            bar.set(r.step as u64 + 1);
         }
     })?;
     bar.finish();
@@ -111,7 +109,31 @@ pub fn probe(
         recipe.log.probe_label_fraction = f;
     }
     let seeds: Vec<u64> = (0..seeds).collect();
-    let rows = probe_encoders(&recipe, data, encoder, &seeds)?;
+    // one probe fit per seed and encoder (random init, pretrained, other random draws, patches)
+    let per_seed =
+        1 + u64::from(encoder.is_some()) + random_inits.map_or(0, |k| k - 1) + u64::from(patches);
+    let progress = Progress::new("probe", "fit", per_seed * seeds.len() as u64);
+    let fitted = || progress.inc(1);
+    let rows = probe_encoders_with_progress(&recipe, data, encoder, &seeds, &fitted)?;
+    // the recipe's own seed is the random encoder of the table; draw the others
+    let encoder_seeds: Vec<u64> = (0..random_inits.unwrap_or(0))
+        .map(|i| recipe.seed.wrapping_add(i))
+        .collect();
+    let draws = match random_inits {
+        Some(_) => Some(probe_random_encoders_with_progress(
+            &recipe,
+            data,
+            &encoder_seeds[1..],
+            &seeds,
+            &fitted,
+        )?),
+        None => None,
+    };
+    let patch_scores = match patches {
+        true => Some(probe_patches_with_progress(&recipe, data, &seeds, &fitted)?),
+        false => None,
+    };
+    progress.finish();
     println!("| probe seed | random init: attentive | linear | pretrained: attentive | linear |");
     println!("|---|---|---|---|---|");
     let cell = |s: Option<f64>| s.map_or("–".to_string(), |v| format!("{v:.1}"));
@@ -154,10 +176,7 @@ pub fn probe(
         rows[0].0.feature_rank,
         cell(rows[0].1.map(|s| s.feature_rank))
     );
-    if let Some(k) = random_inits {
-        // the recipe's own seed is the random encoder of the table above; draw the others
-        let encoder_seeds: Vec<u64> = (0..k).map(|i| recipe.seed.wrapping_add(i)).collect();
-        let draws = probe_random_encoders(&recipe, data, &encoder_seeds[1..], &seeds)?;
+    if let (Some(k), Some(draws)) = (random_inits, draws) {
         let means: Vec<f64> = std::iter::once(sums[0] / n)
             .chain(
                 draws
@@ -186,8 +205,7 @@ pub fn probe(
             );
         }
     }
-    if patches {
-        let scores = probe_patches(&recipe, data, &seeds)?;
+    if let Some(scores) = patch_scores {
         let list: Vec<String> = scores.iter().map(|v| format!("{v:.1}")).collect();
         println!(
             "attentive probe on the raw input patches (no encoder), seeds 0..{}: {} mN, mean {:.1}",

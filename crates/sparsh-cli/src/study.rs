@@ -145,6 +145,7 @@ fn rung_color(rung: SolverKind) -> RGBColor {
         SolverKind::Geometric => RGBColor(86, 180, 233),
         SolverKind::Halfspace => RGBColor(230, 159, 0),
         SolverKind::Layered => RGBColor(0, 114, 178),
+        SolverKind::Fem => RGBColor(204, 121, 167),
     }
 }
 

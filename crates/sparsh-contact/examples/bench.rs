@@ -7,7 +7,7 @@
 use std::time::Instant;
 
 use glam::DVec3;
-use sparsh_contact::{ContactInput, NormalControl, rigid_shift_mm, solver_for};
+use sparsh_contact::{ContactInput, ContactSolver, Fem, NormalControl, rigid_shift_mm, solver_for};
 use sparsh_scene::{GapField, Gel, Grid, Indenter, IndenterSpec, Pose, ShapeKind, SolverKind};
 
 fn main() {
@@ -15,7 +15,8 @@ fn main() {
     if args.get(1).map(String::as_str) == Some("scene") {
         let scene = sparsh_scene::Scene::load(std::path::Path::new(&args[2])).expect("scene");
         let grid = scene.grid();
-        let mut solver = solver_for(scene.solver, &scene.gel, grid);
+        let mut fem = (scene.solver == SolverKind::Fem).then(|| Fem::new(scene.gel, grid));
+        let mut other = solver_for(scene.solver, &scene.gel, grid);
         let (mut total, mut worst, mut previous) = (0.0f64, 0.0f64, None::<Pose>);
         let frames = scene.frames();
         for f in &frames {
@@ -28,14 +29,26 @@ fn main() {
                 .normal_force_n
                 .map_or(NormalControl::Approach, NormalControl::Force);
             let start = Instant::now();
-            solver
-                .solve(&ContactInput {
-                    gap: &gap,
-                    normal,
-                    rigid_shift_mm: &shift,
-                })
-                .expect("solve");
+            let input = ContactInput {
+                gap: &gap,
+                normal,
+                rigid_shift_mm: &shift,
+            };
+            let fields = match fem.as_mut() {
+                Some(f) => f.solve(&input),
+                None => other.solve(&input),
+            }
+            .expect("solve");
             let t = start.elapsed().as_secs_f64();
+            if let Some(f) = &fem {
+                eprintln!(
+                    "{:.3} s  F = {:.4} N  {:?}  {:?}",
+                    t,
+                    fields.force_n[2],
+                    fields.slip_state(),
+                    f.stats()
+                );
+            }
             total += t;
             worst = worst.max(t);
             previous = Some(f.pose);

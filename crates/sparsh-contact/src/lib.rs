@@ -6,14 +6,16 @@
 //! surface along +x, +y; `uz < 0` where the surface is pushed towards the camera. Units: mm, kPa,
 //! N (1 kPa · 1 mm² = 1 mN).
 //!
-//! Rungs: [`Geometric`] (no physics claims) and [`Bem`] (`halfspace` and `layered`: boundary
-//! elements with Polonsky–Keer normal contact and incremental Coulomb friction). The BEM rungs
+//! Rungs: [`Geometric`] (no physics claims), [`Bem`] (`halfspace` and `layered`: boundary
+//! elements with Polonsky–Keer normal contact and incremental Coulomb friction) and [`Fem`]
+//! (finite strain: a neo-Hookean gel meshed in 3-D, the reference for deep presses). The BEM rungs
 //! neglect normal–tangential coupling (Goodman's approximation, exact at ν = 0.5): `uz` comes from
 //! the pressure, `ux, uy` from the tractions. [`mod@reference`] holds the analytic solutions and
 //! [`validation`] the cases behind `sparsh validate`; [`study`] charts speed against accuracy.
 #![warn(missing_docs)]
 
 mod bem;
+mod fem;
 mod fft;
 mod geometric;
 mod kernels;
@@ -24,6 +26,7 @@ pub mod validation;
 use sparsh_scene::{GapField, Gel, Grid, Pose, SolverKind};
 
 pub use bem::{Bem, BemOptions};
+pub use fem::{Fem, FemOptions, FemStats, NU_INCOMPRESSIBLE, NeoHookean};
 pub use geometric::Geometric;
 
 /// How the normal problem is driven in a frame.
@@ -193,6 +196,7 @@ pub fn solver_for(kind: SolverKind, gel: &Gel, grid: Grid) -> Box<dyn ContactSol
         SolverKind::Geometric => Box::new(Geometric::new(*gel, grid)),
         SolverKind::Halfspace => Box::new(Bem::halfspace(*gel, grid)),
         SolverKind::Layered => Box::new(Bem::layered(*gel, grid)),
+        SolverKind::Fem => Box::new(Fem::new(*gel, grid)),
     }
 }
 

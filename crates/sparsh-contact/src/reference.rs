@@ -113,6 +113,17 @@ pub fn bonded_layer_force_factor(chi: f64) -> Option<f64> {
     }
 }
 
+/// F/F_Hertz of a rigid sphere pressed to δ/R = `depth_over_radius` into an incompressible
+/// neo-Hookean half-space, in the closed form attributed to Lin et al. (Biomech. Model.
+/// Mechanobiol. 8, 2009) as implemented in AtomicJ and ISR3D: F = (80/9) a² P(λ) with a = √(Rδ),
+/// λ = 1 − 0.2 a/R and P the uniaxial nominal stress 2C₁₀(λ⁻² − λ); that is
+/// (75 − 15x + x²)/(3(5 − x)²) with x = √(δ/R). Its accuracy against finite elements is not
+/// stated in the sources read, so it is a reported comparison, not a pass mark.
+pub fn lin_neo_hookean_factor(depth_over_radius: f64) -> f64 {
+    let x = depth_over_radius.sqrt();
+    (75.0 - 15.0 * x + x * x) / (3.0 * (5.0 - x) * (5.0 - x))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -24,11 +24,14 @@ use std::time::Instant;
 use sparsh_scene::auto::{SolverTable, TableRow};
 use sparsh_scene::{Scene, SolverKind};
 
-use crate::ContactError;
 use crate::validation::{Case, Check, evaluate_case, run};
+use crate::{ContactError, FemOptions};
 
 /// Gel thickness of the half-space scenes (mm): a/h = 0.002 for their 1 mm contacts.
 const THICK_GEL_MM: f64 = 500.0;
+
+/// Gel thickness of the depth sweep (mm; a 5 mm sphere pressed into it).
+const DEPTH_SWEEP_GEL_MM: f64 = 2.0;
 
 /// What to run.
 #[derive(Debug, Clone, PartialEq)]
@@ -41,6 +44,11 @@ pub struct StudyOptions {
     pub tolerance: f64,
     /// Runs per timed point; the fastest counts.
     pub repeats: usize,
+    /// Indentation depths over gel thickness of the depth sweep.
+    pub depth_over_thickness: Vec<f64>,
+    /// Elements per contact radius of the finite-element reference of the depth sweep (solved
+    /// on a grid of half the sweep's cell).
+    pub reference_elements_per_radius: f64,
 }
 
 impl StudyOptions {
@@ -51,6 +59,8 @@ impl StudyOptions {
             stability_cell_mm: 0.1,
             tolerance: 0.02,
             repeats: 3,
+            depth_over_thickness: vec![0.01, 0.05, 0.1, 0.2, 0.3, 0.4, 0.6, 0.8, 1.0, 1.2],
+            reference_elements_per_radius: 12.0,
         }
     }
 
@@ -61,6 +71,8 @@ impl StudyOptions {
             stability_cell_mm: 0.2,
             tolerance: 0.02,
             repeats: 1,
+            depth_over_thickness: vec![0.05, 0.2, 0.4, 1.2],
+            reference_elements_per_radius: 8.0,
         }
     }
 }
@@ -154,6 +166,10 @@ pub struct StabilityPoint {
     pub sweep: &'static str,
     /// Its value as shown on the map (`δ/h 0.4`, `cone 10°`, `box edge`).
     pub label: String,
+    /// Indentation depth over gel thickness of the depth sweep (0 elsewhere).
+    pub depth_over_h: f64,
+    /// Contact radius over gel thickness of the depth sweep (0 elsewhere; the rigid footprint's).
+    pub a_over_h: f64,
     /// Rung.
     pub rung: SolverKind,
     /// Cell size (mm).
@@ -423,6 +439,9 @@ fn analytic_scenes() -> Vec<AnalyticScene> {
             name: format!("bonded_layer_{chi}"),
             setup: Setup {
                 thickness_mm: 1.0 / chi,
+                // Garcia & Garcia's layer is frictionless; with friction the finite elements
+                // see the radial shear a stuck surface carries (the boundary elements do not).
+                friction: 0.0,
                 ..incompressible(Setup::sphere(100.0, 0.01))
             },
             case: case(Check::BondedLayer),
@@ -440,10 +459,19 @@ struct SweepPoint {
     setup: Setup,
     case: Option<Case>,
     cell_mm: f64,
+    /// Without an analytic case: the rung whose solution on a grid of half the cell is the
+    /// reference (the half-space rung, or finite elements at finite depth).
+    reference_rung: SolverKind,
+    /// Depth over thickness and rigid footprint over thickness (depth sweep; 0 elsewhere).
+    depth_over_h: f64,
+    a_over_h: f64,
 }
 
 /// The reference names of the stability map, by check.
-fn reference_name(case: Option<&Case>) -> &'static str {
+fn reference_name(case: Option<&Case>, reference_rung: SolverKind) -> &'static str {
+    if case.is_none() && reference_rung == SolverKind::Fem {
+        return "fem (neo-Hookean, finite strain) on a finer mesh and a twice finer grid";
+    }
     match case.map(|c| c.check) {
         Some(Check::BondedLayer) => "bonded layer (Garcia & Garcia; exact solution at χ = 1)",
         Some(Check::Cone) => "Sneddon cone",
@@ -454,7 +482,7 @@ fn reference_name(case: Option<&Case>) -> &'static str {
     }
 }
 
-fn stability_sweeps(cell_mm: f64) -> Vec<SweepPoint> {
+fn stability_sweeps(cell_mm: f64, depths: &[f64]) -> Vec<SweepPoint> {
     let mut points = Vec::new();
     let mut push = |sweep, label: String, setup, case, cell_mm| {
         points.push(SweepPoint {
@@ -463,28 +491,36 @@ fn stability_sweeps(cell_mm: f64) -> Vec<SweepPoint> {
             setup,
             case,
             cell_mm,
+            reference_rung: SolverKind::Halfspace,
+            depth_over_h: 0.0,
+            a_over_h: 0.0,
         })
     };
-    // A 5 mm sphere on a 2 mm incompressible layer, pressed up to and past the layer's thickness:
-    // χ = √(Rδ)/h = √(2.5 δ/h) is 0.16, 0.35, 0.5 and 1, where the layer's force is known (see
-    // `reference::bonded_layer_force_factor`), and δ > h, which no rung may accept.
-    for ratio in [0.01, 0.05, 0.1, 0.4, 1.2] {
-        let (radius, h) = (5.0, 2.0);
+    // A 5 mm sphere on a 2 mm incompressible layer, frictionless, pressed up to and past the
+    // layer's thickness, against the finite-strain (neo-Hookean) finite elements: linear theory
+    // is not the answer at depth. δ ≥ h no rung may accept.
+    let mut depth_points = Vec::new();
+    for &ratio in depths {
+        let (radius, h) = (5.0, DEPTH_SWEEP_GEL_MM);
         let depth = ratio * h;
         let footprint = (2.0f64 * radius * depth - depth * depth).max(0.0).sqrt();
         let setup = Setup {
             poisson: 0.5,
             thickness_mm: h,
+            friction: 0.0,
             box_mm: 3.2 * footprint + 1.0,
             ..Setup::sphere(radius, depth)
         };
-        push(
-            "depth_over_thickness",
-            format!("δ/h {ratio}"),
+        depth_points.push(SweepPoint {
+            sweep: "depth_over_thickness",
+            label: format!("δ/h {ratio}"),
             setup,
-            Some(case(Check::BondedLayer)),
+            case: None,
             cell_mm,
-        );
+            reference_rung: SolverKind::Fem,
+            depth_over_h: ratio,
+            a_over_h: footprint / h,
+        });
     }
     for angle in [80.0, 60.0, 45.0, 30.0, 20.0, 10.0] {
         push(
@@ -561,7 +597,8 @@ fn stability_sweeps(cell_mm: f64) -> Vec<SweepPoint> {
             cell,
         );
     }
-    points
+    depth_points.extend(points);
+    depth_points
 }
 
 /// Runs the accuracy study and the stability map; `progress` gets one line per point.
@@ -606,15 +643,24 @@ pub fn run_study(options: &StudyOptions, progress: &mut dyn FnMut(&str)) -> Stud
     }
 
     let mut stability = Vec::new();
-    for point in stability_sweeps(options.stability_cell_mm) {
-        let reference = reference_name(point.case.as_ref());
-        // The box edge has no closed form: its reference is the half-space rung on a grid of
-        // half the cell size.
+    let sweeps = stability_sweeps(options.stability_cell_mm, &options.depth_over_thickness);
+    for point in sweeps {
+        let reference = reference_name(point.case.as_ref(), point.reference_rung);
+        // Without a closed form (the box edge, a press at depth) the reference is the half-space
+        // or the finite-element rung on a grid of half the cell size.
+        let fem = FemOptions {
+            elements_per_radius: options.reference_elements_per_radius,
+            ..FemOptions::default()
+        };
         let fine = match point.case {
             None => point
                 .setup
-                .scene(SolverKind::Halfspace, point.cell_mm / 2.0)
-                .and_then(|s| normal_force_n(&s).map_err(|e| e.to_string())),
+                .scene(point.reference_rung, point.cell_mm / 2.0)
+                .and_then(|s| {
+                    let r = crate::validation::run_with(&s, s.solver, s.grid(), fem)
+                        .map_err(|e| e.to_string())?;
+                    Ok((r.fields.force_n[2], r.frames))
+                }),
             Some(_) => Ok((f64::NAN, 0)),
         };
         for rung in SolverKind::ALL {
@@ -651,6 +697,8 @@ pub fn run_study(options: &StudyOptions, progress: &mut dyn FnMut(&str)) -> Stud
             stability.push(StabilityPoint {
                 sweep: point.sweep,
                 label: point.label.clone(),
+                depth_over_h: point.depth_over_h,
+                a_over_h: point.a_over_h,
                 rung,
                 cell_mm: point.cell_mm,
                 reference,
@@ -659,7 +707,7 @@ pub fn run_study(options: &StudyOptions, progress: &mut dyn FnMut(&str)) -> Stud
         }
     }
 
-    let table = solver_table(&points);
+    let table = solver_table(&points, &stability);
     Study {
         options: options.clone(),
         points,
@@ -670,8 +718,11 @@ pub fn run_study(options: &StudyOptions, progress: &mut dyn FnMut(&str)) -> Stud
 
 /// The solver table from the accuracy study's `in_table` points: at each rung and resolution,
 /// a row for the thick gel (worst over the half-space scenes) and one per bonded layer (worst of
-/// the half-space scenes and that layer). Failed points count as an infinite error.
-pub fn solver_table(points: &[StudyPoint]) -> SolverTable {
+/// the half-space scenes and that layer; a rung that declines thick gels as outside its
+/// validity, the finite elements, is judged on the layer alone). Failed points count as an
+/// infinite error. Then, per rung, one row per depth of the stability map's depth sweep (its
+/// error against the finite-strain reference).
+pub fn solver_table(points: &[StudyPoint], stability: &[StabilityPoint]) -> SolverTable {
     let error = |p: &StudyPoint| {
         p.measurement
             .rel_error
@@ -713,9 +764,18 @@ pub fn solver_table(points: &[StudyPoint]) -> SolverTable {
                 rung,
                 a_over_cell: cells,
                 a_over_h: 1.0 / THICK_GEL_MM,
+                depth_over_h: 0.0,
                 rel_error: base_error,
                 ms_per_frame: base_ms,
             });
+            let declines_thick = thick
+                .iter()
+                .all(|p| p.measurement.outcome == Outcome::OutOfValidity);
+            let (base_error, base_ms) = if declines_thick {
+                (0.0, 0.0)
+            } else {
+                (base_error, base_ms)
+            };
             for &chi in &layers {
                 let layer: Vec<&StudyPoint> =
                     at.iter().copied().filter(|p| p.a_over_h == chi).collect();
@@ -724,10 +784,28 @@ pub fn solver_table(points: &[StudyPoint]) -> SolverTable {
                     rung,
                     a_over_cell: cells,
                     a_over_h: chi,
+                    depth_over_h: 0.0,
                     rel_error: base_error.max(e),
                     ms_per_frame: base_ms.max(ms),
                 });
             }
+        }
+        for p in stability
+            .iter()
+            .filter(|p| p.rung == rung && p.depth_over_h > 0.0)
+        {
+            let m = &p.measurement;
+            rows.push(TableRow {
+                rung,
+                a_over_cell: p.a_over_h * DEPTH_SWEEP_GEL_MM / p.cell_mm,
+                a_over_h: p.a_over_h,
+                depth_over_h: p.depth_over_h,
+                rel_error: m
+                    .rel_error
+                    .filter(|_| matches!(m.outcome, Outcome::Ok | Outcome::OverTolerance))
+                    .map_or(f64::INFINITY, f64::abs),
+                ms_per_frame: m.ms_per_frame,
+            });
         }
     }
     SolverTable { rows }

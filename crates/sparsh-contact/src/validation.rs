@@ -28,7 +28,9 @@ use serde::{Deserialize, Serialize};
 use sparsh_scene::{GapField, Grid, Pose, Scene, SceneError, SolverKind};
 
 use crate::reference::{self, CattaneoMindlin, Hertz};
-use crate::{ContactError, ContactInput, Fields, NormalControl, rigid_shift_mm, solver_for};
+use crate::{
+    ContactError, ContactInput, Fem, FemOptions, Fields, NormalControl, rigid_shift_mm, solver_for,
+};
 
 /// The analytic solution a case is compared with.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
@@ -48,6 +50,15 @@ pub enum Check {
     BondedLayer,
     /// The layered rung on a layer much thicker than the contact against the half-space rung.
     LayeredVsHalfspace,
+    /// The scene's rung against the layered rung on the same grid and frames: force (a second
+    /// method; for the finite-element rung in the small-strain limit).
+    VersusLayered,
+    /// The scene's rung at ν = 0.49 and at ν = 0.4999: force over E* = E/(1 − ν²), which the
+    /// elastic solution keeps (to the bottom effect) and a locking element inflates.
+    Locking,
+    /// Sphere on a thick block at finite depth: force against Hertz (with the bottom effect) and
+    /// against the neo-Hookean closed form attributed to Lin et al. (2009); reported only.
+    FiniteStrainSphere,
 }
 
 /// The `[validation]` table.
@@ -62,6 +73,9 @@ struct Spec {
     tangential_steps: usize,
     #[serde(default)]
     refine: Vec<f64>,
+    /// Finite-element convergence study: elements per contact radius, coarse to fine.
+    #[serde(default)]
+    elements_per_radius: Vec<f64>,
 }
 
 fn default_steps() -> usize {
@@ -148,12 +162,12 @@ pub enum ValidationError {
     #[error(transparent)]
     Scene(#[from] SceneError),
     /// A solver failed on a case.
-    #[error("{case}: {source}")]
+    #[error("{case}: {cause}")]
     Contact {
         /// Case name.
         case: String,
-        /// Cause.
-        source: ContactError,
+        /// Cause (in the message, not chained, so a report prints it once).
+        cause: ContactError,
     },
 }
 
@@ -205,9 +219,9 @@ pub fn run_case(path: &Path) -> Result<Report, ValidationError> {
         .file_stem()
         .map(|s| s.to_string_lossy().into_owned())
         .unwrap_or_default();
-    let contact_err = |source| ValidationError::Contact {
+    let contact_err = |cause| ValidationError::Contact {
         case: case.clone(),
-        source,
+        cause,
     };
 
     let start = Instant::now();
@@ -282,6 +296,51 @@ pub fn run_case(path: &Path) -> Result<Report, ValidationError> {
         }
         convergence = studies;
     }
+    if !spec.elements_per_radius.is_empty() {
+        // The finite-element mesh refined at a fixed grid: the "cell" is the fine zone's element
+        // size, a/(elements per radius), with a the contact radius of the finest solution.
+        let case_spec = Case {
+            check: spec.check,
+            q_over_mu_p: spec.q_over_mu_p.unwrap_or(f64::NAN),
+            tangential_steps: spec.tangential_steps,
+        };
+        let mut studies: Vec<Convergence> = Vec::new();
+        for &per_radius in &spec.elements_per_radius {
+            let options = FemOptions {
+                elements_per_radius: per_radius,
+                ..FemOptions::default()
+            };
+            let values = evaluate_case_with(&scene, &case_spec, base, options)
+                .map_err(contact_err)?
+                .values;
+            for v in values {
+                let study = match studies.iter_mut().find(|s| s.quantity == v.quantity) {
+                    Some(s) => s,
+                    None => {
+                        studies.push(Convergence {
+                            case: format!("{case} (elements per radius)"),
+                            quantity: v.quantity.to_string(),
+                            cell_mm: Vec::new(),
+                            rel_error: Vec::new(),
+                            observed_order: Vec::new(),
+                        });
+                        studies.last_mut().expect("just pushed")
+                    }
+                };
+                study.cell_mm.push(1.0 / per_radius);
+                study.rel_error.push(v.rel_error());
+            }
+        }
+        for s in &mut studies {
+            s.observed_order = s
+                .rel_error
+                .windows(2)
+                .zip(s.cell_mm.windows(2))
+                .map(|(e, h)| (e[0].abs() / e[1].abs()).ln() / (h[0] / h[1]).ln())
+                .collect();
+        }
+        convergence.extend(studies);
+    }
     Ok(Report { rows, convergence })
 }
 
@@ -330,7 +389,32 @@ pub(crate) fn run(
     grid: Grid,
     extra: &[Pose],
 ) -> Result<Run, ContactError> {
-    let mut solver = solver_for(kind, &scene.gel, grid);
+    run_fem(scene, kind, grid, extra, FemOptions::default(), scene.gel)
+}
+
+/// [`run`] with the finite-element rung's options.
+pub(crate) fn run_with(
+    scene: &Scene,
+    kind: SolverKind,
+    grid: Grid,
+    fem: FemOptions,
+) -> Result<Run, ContactError> {
+    run_fem(scene, kind, grid, &[], fem, scene.gel)
+}
+
+/// [`run`] with the finite-element rung's options and another gel.
+fn run_fem(
+    scene: &Scene,
+    kind: SolverKind,
+    grid: Grid,
+    extra: &[Pose],
+    fem: FemOptions,
+    gel: sparsh_scene::Gel,
+) -> Result<Run, ContactError> {
+    let mut solver: Box<dyn crate::ContactSolver> = match kind {
+        SolverKind::Fem => Box::new(Fem::new(gel, grid).with_options(fem)),
+        _ => solver_for(kind, &gel, grid),
+    };
     let frames = scene.frames();
     let mut steps: Vec<(Pose, Option<f64>)> =
         frames.iter().map(|f| (f.pose, f.normal_force_n)).collect();
@@ -396,7 +480,20 @@ pub struct Case {
 /// Solves `scene` with its own solver rung on `grid` (the layered-against-half-space check
 /// runs both) and compares with the analytic solution of `case.check`.
 pub fn evaluate_case(scene: &Scene, case: &Case, grid: Grid) -> Result<Evaluation, ContactError> {
+    evaluate_case_with(scene, case, grid, FemOptions::default())
+}
+
+/// [`evaluate_case`] with the finite-element rung's mesh and iteration options.
+pub fn evaluate_case_with(
+    scene: &Scene,
+    case: &Case,
+    grid: Grid,
+    fem: FemOptions,
+) -> Result<Evaluation, ContactError> {
     let gel = scene.gel;
+    let run = |scene: &Scene, kind, grid, extra: &[Pose]| {
+        run_fem(scene, kind, grid, extra, fem, scene.gel)
+    };
     let e_star = gel.effective_modulus_kpa();
     let spec_indenter = &scene.indenter_spec;
     let radius_mm = spec_indenter.radius_mm.unwrap_or(f64::NAN);
@@ -544,6 +641,46 @@ pub fn evaluate_case(scene: &Scene, case: &Case, grid: Grid) -> Result<Evaluatio
                     r.fields.force_n[2],
                 ),
                 v("contact_radius (mm)", hertz_a, contact_radius_mm(&r.fields)),
+            ]
+        }
+        Check::VersusLayered => {
+            let own = count(run(scene, scene.solver, grid, &[])?);
+            let layer = count(run(scene, SolverKind::Layered, grid, &[])?);
+            vec![v(
+                "force (N)",
+                layer.fields.force_n[2],
+                own.fields.force_n[2],
+            )]
+        }
+        Check::Locking => {
+            let mut at = |nu: f64| -> Result<f64, ContactError> {
+                let gel = sparsh_scene::Gel {
+                    poisson_ratio: nu,
+                    ..scene.gel
+                };
+                let r = count(run_fem(scene, scene.solver, grid, &[], fem, gel)?);
+                Ok(r.fields.force_n[2] / gel.effective_modulus_kpa())
+            };
+            let (compressible, incompressible) = (at(0.49)?, at(0.4999)?);
+            vec![v("force_over_e_star (N/kPa)", compressible, incompressible)]
+        }
+        Check::FiniteStrainSphere => {
+            let r = count(run(scene, scene.solver, grid, &[])?);
+            let hertz_a = (radius_mm * r.approach_mm).sqrt();
+            let bottom = reference::garcia_bottom_effect(hertz_a / gel.thickness_mm);
+            let x = (r.approach_mm / radius_mm).sqrt();
+            let lin = reference::lin_neo_hookean_factor(x * x);
+            vec![
+                v(
+                    "force_vs_hertz (N)",
+                    hertz.force_n(r.approach_mm) * bottom,
+                    r.fields.force_n[2],
+                ),
+                v(
+                    "force_vs_lin2009 (N)",
+                    hertz.force_n(r.approach_mm) * bottom * lin,
+                    r.fields.force_n[2],
+                ),
             ]
         }
         Check::LayeredVsHalfspace => {

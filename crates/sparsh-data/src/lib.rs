@@ -9,6 +9,7 @@
 //! DIR/parts/000000.json      record of a finished sequence: its files' sha256 and label rows
 //! DIR/labels.jsonl           one JSON row per frame (see [`Label`]), all sequences in order
 //! DIR/manifest.json          identity, notes and the sha256 of every file; written last
+//! DIR/shards.json            while shards (`--shard K/N`) are running: N; removed at the end
 //! ```
 //! Every file is written under a temporary name and renamed into place; a sequence's record is
 //! written after its files, and the manifest after every record, so an interrupted run never
@@ -22,8 +23,8 @@ mod writer;
 
 pub use exr_io::{ExrChannels, read_exr_channels, write_exr_channels};
 pub use writer::{
-    Dataset, Identity, Label, Manifest, OpenMode, PoseLabel, Problem, SequencePart, encode_png,
-    verify, write_atomic,
+    Dataset, Identity, Label, Manifest, OpenMode, PoseLabel, Problem, SequencePart, ShardLayout,
+    check_part, encode_png, read_identity, read_manifest, read_shard_layout, verify, write_atomic,
 };
 
 /// Failures reading or writing a dataset; each names the file.

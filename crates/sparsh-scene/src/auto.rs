@@ -30,6 +30,9 @@ pub struct TableRow {
     pub a_over_cell: f64,
     /// Contact radius over gel thickness.
     pub a_over_h: f64,
+    /// Indentation depth over gel thickness: 0 for the accuracy study's shallow presses, the
+    /// swept depth for the rows of the depth sweep (against finite-strain finite elements).
+    pub depth_over_h: f64,
     /// Worst |relative force error| measured there (∞ where a case failed).
     pub rel_error: f64,
     /// Worst time per frame measured there (ms).
@@ -43,7 +46,7 @@ pub struct SolverTable {
     pub rows: Vec<TableRow>,
 }
 
-const HEADER: &str = "rung,a_over_cell,a_over_h,rel_error,ms_per_frame";
+const HEADER: &str = "rung,a_over_cell,a_over_h,depth_over_h,rel_error,ms_per_frame";
 
 impl SolverTable {
     /// The compiled-in table.
@@ -70,8 +73,8 @@ impl SolverTable {
             .map(|(n, line)| {
                 let f: Vec<&str> = line.split(',').map(str::trim).collect();
                 let bad = |what: &str| format!("line {}: {what}", n + 1);
-                if f.len() != 5 {
-                    return Err(bad("needs 5 fields"));
+                if f.len() != 6 {
+                    return Err(bad("needs 6 fields"));
                 }
                 let num = |s: &str| {
                     s.parse::<f64>()
@@ -81,11 +84,18 @@ impl SolverTable {
                     rung: f[0].parse().map_err(|e: String| bad(&e))?,
                     a_over_cell: num(f[1])?,
                     a_over_h: num(f[2])?,
-                    rel_error: num(f[3])?,
-                    ms_per_frame: num(f[4])?,
+                    depth_over_h: num(f[3])?,
+                    rel_error: num(f[4])?,
+                    ms_per_frame: num(f[5])?,
                 };
-                if !(row.a_over_cell > 0.0 && row.a_over_h >= 0.0 && row.rel_error >= 0.0) {
-                    return Err(bad("a_over_cell must be > 0, a_over_h and rel_error ≥ 0"));
+                if !(row.a_over_cell > 0.0
+                    && row.a_over_h >= 0.0
+                    && row.depth_over_h >= 0.0
+                    && row.rel_error >= 0.0)
+                {
+                    return Err(bad(
+                        "a_over_cell must be > 0, a_over_h, depth_over_h and rel_error ≥ 0",
+                    ));
                 }
                 Ok(row)
             })
@@ -96,7 +106,8 @@ impl SolverTable {
     /// What the table holds, for the provenance sidecar the study writes beside it.
     pub const DESCRIPTION: &'static str = "worst |relative force error| and worst ms per frame of \
         each rung at each studied contact radius in cells (a_over_cell) and contact radius over gel \
-        thickness (a_over_h); read by solver = \"auto\"";
+        thickness (a_over_h) with depth_over_h = 0, and along the depth sweep (depth_over_h > 0, \
+        against finite-strain finite elements); read by solver = \"auto\"";
 
     /// CSV text (RFC 4180: the header row first, nothing before it), one row per studied point.
     pub fn to_csv(&self) -> String {
@@ -104,10 +115,11 @@ impl SolverTable {
         out.push('\n');
         for r in &self.rows {
             out.push_str(&format!(
-                "{},{},{},{:e},{:e}\n",
+                "{},{},{},{},{:e},{:e}\n",
                 r.rung.name(),
                 r.a_over_cell,
                 r.a_over_h,
+                r.depth_over_h,
                 r.rel_error,
                 r.ms_per_frame
             ));
@@ -118,7 +130,10 @@ impl SolverTable {
     /// The studied point that bounds (`rung`, `a_over_cell`, `a_over_h`) from the hard side: the
     /// largest studied a/cell not above the query, then the smallest studied a/h not below it.
     pub fn predict(&self, rung: SolverKind, a_over_cell: f64, a_over_h: f64) -> Option<TableRow> {
-        let rows = self.rows.iter().filter(|r| r.rung == rung);
+        let rows = self
+            .rows
+            .iter()
+            .filter(|r| r.rung == rung && r.depth_over_h == 0.0);
         let cell = rows
             .clone()
             .map(|r| r.a_over_cell)
@@ -127,6 +142,26 @@ impl SolverTable {
         rows.filter(|r| r.a_over_cell == cell && r.a_over_h >= a_over_h * (1.0 - 1e-9))
             .min_by(|a, b| a.a_over_h.total_cmp(&b.a_over_h))
             .copied()
+    }
+}
+
+impl SolverTable {
+    /// The error of `rung` at indentation depth over gel thickness `depth_over_h`, from the depth
+    /// sweep on the hard side: the error at the shallowest swept depth at or past the query (∞
+    /// past the deepest swept depth; 0 when the table has no depth rows for the rung).
+    pub fn depth_error(&self, rung: SolverKind, depth_over_h: f64) -> f64 {
+        let rows: Vec<&TableRow> = self
+            .rows
+            .iter()
+            .filter(|r| r.rung == rung && r.depth_over_h > 0.0)
+            .collect();
+        if rows.is_empty() {
+            return 0.0;
+        }
+        rows.iter()
+            .filter(|r| r.depth_over_h >= depth_over_h * (1.0 - 1e-9))
+            .min_by(|a, b| a.depth_over_h.total_cmp(&b.depth_over_h))
+            .map_or(f64::INFINITY, |r| r.rel_error)
     }
 }
 
@@ -143,7 +178,10 @@ pub struct AutoChoice {
     pub contact_radius_mm: f64,
     /// Estimated contact radius over gel thickness.
     pub a_over_h: f64,
-    /// Predicted |relative force error| (the table's bounding point).
+    /// Estimated deepest indentation over gel thickness.
+    pub depth_over_h: f64,
+    /// Predicted |relative force error| (the worse of the table's bounding point and the depth
+    /// sweep at the scene's depth).
     pub predicted_rel_error: f64,
     /// The table's time per frame at that point (ms).
     pub predicted_ms_per_frame: f64,
@@ -164,11 +202,14 @@ pub fn candidates(
     sensor: &SensorConfig,
     gel: &Gel,
     contact_radius_mm: f64,
+    depth_mm: f64,
     tolerance: f64,
 ) -> Vec<AutoChoice> {
     let a_over_h = contact_radius_mm / gel.thickness_mm;
+    let depth_over_h = depth_mm / gel.thickness_mm;
     let mut out = Vec::new();
     for solver in SolverKind::ALL {
+        let depth_error = table.depth_error(solver, depth_over_h);
         for stride in 1..=sensor.width_px.min(sensor.height_px) {
             if !(sensor.width_px.is_multiple_of(stride) && sensor.height_px.is_multiple_of(stride))
             {
@@ -182,7 +223,8 @@ pub fn candidates(
                     tolerance,
                     contact_radius_mm,
                     a_over_h,
-                    predicted_rel_error: row.rel_error,
+                    depth_over_h,
+                    predicted_rel_error: row.rel_error.max(depth_error),
                     predicted_ms_per_frame: row.ms_per_frame,
                 });
             }
@@ -218,6 +260,41 @@ pub fn most_accurate(candidates: &[AutoChoice]) -> Option<AutoChoice> {
                 )
         })
         .copied()
+}
+
+/// The deepest indentation (mm) along the frames: the largest rigid penetration of the gel
+/// surface, or under force control a sphere's Hertz approach a²/R at the largest load (with
+/// `contact_radius_mm` its radius there).
+pub fn depth_estimate_mm(
+    spec: &IndenterSpec,
+    indenter: &Indenter,
+    frames: &[FrameTarget],
+    sensor: &SensorConfig,
+    contact_radius_mm: f64,
+) -> f64 {
+    if frames.iter().any(|f| f.normal_force_n.is_some()) {
+        return spec
+            .radius_mm
+            .map_or(0.0, |r| contact_radius_mm * contact_radius_mm / r);
+    }
+    let image = sensor.grid();
+    let coarse = Grid {
+        nx: image.nx.div_ceil(4),
+        ny: image.ny.div_ceil(4),
+        cell_mm: image.cell_mm * 4.0,
+    };
+    let depth = |grid: Grid, f: &FrameTarget| {
+        GapField::cast(indenter, &f.pose, grid)
+            .gap_mm
+            .iter()
+            .filter(|g| g.is_finite())
+            .fold(0.0f64, |m, &g| m.max(-g))
+    };
+    frames
+        .iter()
+        .map(|f| (depth(coarse, f), f))
+        .max_by(|a, b| a.0.total_cmp(&b.0))
+        .map_or(0.0, |(_, f)| depth(image, f))
 }
 
 /// A lower estimate of the largest contact radius (mm) along the frames: (2/π) times the radius

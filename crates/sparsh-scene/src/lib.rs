@@ -133,14 +133,18 @@ pub enum SolverKind {
     /// As `halfspace`, with the normal compliance of a gel layer of `thickness_mm` bonded to its
     /// rigid window (Carbone & Mangialardi 2008, eq. A.30).
     Layered,
+    /// Finite elements: the gel as a nearly incompressible neo-Hookean solid bonded to its
+    /// window, at finite strain, with Coulomb friction (the reference for deep presses).
+    Fem,
 }
 
 impl SolverKind {
     /// Every rung, cheapest first.
-    pub const ALL: [SolverKind; 3] = [
+    pub const ALL: [SolverKind; 4] = [
         SolverKind::Geometric,
         SolverKind::Halfspace,
         SolverKind::Layered,
+        SolverKind::Fem,
     ];
 
     /// The name used in scene files.
@@ -149,6 +153,7 @@ impl SolverKind {
             SolverKind::Geometric => "geometric",
             SolverKind::Halfspace => "halfspace",
             SolverKind::Layered => "layered",
+            SolverKind::Fem => "fem",
         }
     }
 }
@@ -160,7 +165,7 @@ impl std::str::FromStr for SolverKind {
         SolverKind::ALL
             .into_iter()
             .find(|k| k.name() == s)
-            .ok_or_else(|| format!("unknown solver `{s}` (geometric, halfspace or layered)"))
+            .ok_or_else(|| format!("unknown solver `{s}` (geometric, halfspace, layered or fem)"))
     }
 }
 
@@ -173,6 +178,7 @@ enum SolverRequest {
     Geometric,
     Halfspace,
     Layered,
+    Fem,
     Auto,
 }
 
@@ -482,6 +488,7 @@ impl Scene {
             SolverRequest::Geometric => fixed(SolverKind::Geometric)?,
             SolverRequest::Halfspace => fixed(SolverKind::Halfspace)?,
             SolverRequest::Layered => fixed(SolverKind::Layered)?,
+            SolverRequest::Fem => fixed(SolverKind::Fem)?,
             SolverRequest::Auto => {
                 if file.mechanics_stride.is_some() {
                     return Err(SceneError::invalid(
@@ -507,8 +514,11 @@ impl Scene {
                     &file.gel,
                 )
                 .map_err(|m| SceneError::invalid(path, "solver", m))?;
+                let depth =
+                    auto::depth_estimate_mm(&file.indenter, &indenter, &frames, &sensor, radius);
                 let table = auto::SolverTable::builtin();
-                let candidates = auto::candidates(table, &sensor, &file.gel, radius, tolerance);
+                let candidates =
+                    auto::candidates(table, &sensor, &file.gel, radius, depth, tolerance);
                 let choice = auto::choose(&candidates).ok_or_else(|| {
                     SceneError::invalid(
                         path,

@@ -412,6 +412,17 @@ pub fn probe_encoders(
     encoder: Option<&Path>,
     seeds: &[u64],
 ) -> Result<Vec<(ProbeScore, Option<ProbeScore>)>, Error> {
+    probe_encoders_with_progress(recipe, data, encoder, seeds, &|| {})
+}
+
+/// [`probe_encoders`], calling `fitted` after each probe fit (one per seed and encoder).
+pub fn probe_encoders_with_progress(
+    recipe: &Recipe,
+    data: &[PathBuf],
+    encoder: Option<&Path>,
+    seeds: &[u64],
+    fitted: &dyn Fn(),
+) -> Result<Vec<(ProbeScore, Option<ProbeScore>)>, Error> {
     recipe.validate()?;
     let set = probe_set(recipe, data)?;
     // initialised as a run initialises it, on the autodiff device
@@ -422,12 +433,17 @@ pub fn probe_encoders(
         None => None,
     };
     let epochs = recipe.log.probe_epochs;
+    let score = |encoder: &Vit, seed: u64| {
+        let s = set.score(encoder, epochs, seed);
+        fitted();
+        s
+    };
     Ok(seeds
         .iter()
         .map(|&seed| {
             (
-                set.score(&random, epochs, seed),
-                loaded.as_ref().map(|e| set.score(e, epochs, seed)),
+                score(&random, seed),
+                loaded.as_ref().map(|e| score(e, seed)),
             )
         })
         .collect())
@@ -444,6 +460,17 @@ pub fn probe_random_encoders(
     encoder_seeds: &[u64],
     probe_seeds: &[u64],
 ) -> Result<Vec<Vec<ProbeScore>>, Error> {
+    probe_random_encoders_with_progress(recipe, data, encoder_seeds, probe_seeds, &|| {})
+}
+
+/// [`probe_random_encoders`], calling `fitted` after each probe fit.
+pub fn probe_random_encoders_with_progress(
+    recipe: &Recipe,
+    data: &[PathBuf],
+    encoder_seeds: &[u64],
+    probe_seeds: &[u64],
+    fitted: &dyn Fn(),
+) -> Result<Vec<Vec<ProbeScore>>, Error> {
     recipe.validate()?;
     let set = probe_set(recipe, data)?;
     let device = Device::flex().autodiff();
@@ -457,7 +484,11 @@ pub fn probe_random_encoders(
             let encoder = Trainee::init(&drawn, &device)?.encoder().clone();
             Ok(probe_seeds
                 .iter()
-                .map(|&p| set.score(&encoder, recipe.log.probe_epochs, p))
+                .map(|&p| {
+                    let s = set.score(&encoder, recipe.log.probe_epochs, p);
+                    fitted();
+                    s
+                })
                 .collect())
         })
         .collect()
@@ -466,6 +497,16 @@ pub fn probe_random_encoders(
 /// The attentive force probe of `recipe` on the raw input patches of `data` (no encoder), once
 /// per probe seed in `seeds`: RMSE in mN.
 pub fn probe_patches(recipe: &Recipe, data: &[PathBuf], seeds: &[u64]) -> Result<Vec<f64>, Error> {
+    probe_patches_with_progress(recipe, data, seeds, &|| {})
+}
+
+/// [`probe_patches`], calling `fitted` after each probe fit.
+pub fn probe_patches_with_progress(
+    recipe: &Recipe,
+    data: &[PathBuf],
+    seeds: &[u64],
+    fitted: &dyn Fn(),
+) -> Result<Vec<f64>, Error> {
     recipe.validate()?;
     if recipe.log.probe_epochs == 0 {
         return Err(Error::Config(
@@ -475,7 +516,11 @@ pub fn probe_patches(recipe: &Recipe, data: &[PathBuf], seeds: &[u64]) -> Result
     let set = probe_set(recipe, data)?;
     Ok(seeds
         .iter()
-        .map(|&seed| set.score_patches(recipe.encoder.patch_size, recipe.log.probe_epochs, seed))
+        .map(|&seed| {
+            let s = set.score_patches(recipe.encoder.patch_size, recipe.log.probe_epochs, seed);
+            fitted();
+            s
+        })
         .collect())
 }
 

@@ -1,0 +1,375 @@
+//! The gel's material and its 8-node hexahedra.
+//!
+//! Nearly incompressible neo-Hookean solid, split into an isochoric and a volumetric part,
+//! W = μ/2 (J^(−2/3) I₁ − 3) + κ/2 (θ − 1)², with the volumetric part evaluated on the element's
+//! mean dilatation θ = v_e / V_e (deformed over reference volume) instead of the pointwise J: the
+//! Q1/P0 mean-dilatation element of Simo, Taylor & Pister (CMAME 51, 1985), which does not lock
+//! as ν → 0.5. Because the isochoric energy is invariant under F → λF, this is also the F-bar
+//! element's energy (de Souza Neto et al. 1996) for a constant F-bar over the element, and it is
+//! a potential: the element's stiffness is its exact, symmetric Hessian.
+//!
+//! Elements are axis-aligned boxes (the mesh is a graded tensor-product grid), integrated with
+//! 2 × 2 × 2 Gauss points.
+
+/// Shear and bulk modulus of the gel (kPa).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct NeoHookean {
+    /// Shear modulus μ = E / (2(1 + ν)).
+    pub shear_kpa: f64,
+    /// Bulk modulus κ = E / (3(1 − 2ν)).
+    pub bulk_kpa: f64,
+}
+
+impl NeoHookean {
+    /// The small-strain moduli of Young's modulus `e_kpa` and Poisson ratio `nu` (ν < 0.5).
+    pub fn from_young(e_kpa: f64, nu: f64) -> NeoHookean {
+        NeoHookean {
+            shear_kpa: e_kpa / (2.0 * (1.0 + nu)),
+            bulk_kpa: e_kpa / (3.0 * (1.0 - 2.0 * nu)),
+        }
+    }
+}
+
+/// A 3 × 3 matrix, row-major.
+pub type Mat3 = [[f64; 3]; 3];
+
+fn det(f: &Mat3) -> f64 {
+    f[0][0] * (f[1][1] * f[2][2] - f[1][2] * f[2][1])
+        - f[0][1] * (f[1][0] * f[2][2] - f[1][2] * f[2][0])
+        + f[0][2] * (f[1][0] * f[2][1] - f[1][1] * f[2][0])
+}
+
+/// F⁻ᵀ of a matrix with determinant `j`.
+fn inverse_transpose(f: &Mat3, j: f64) -> Mat3 {
+    // The cofactor matrix over the determinant.
+    let c =
+        |r0: usize, r1: usize, c0: usize, c1: usize| f[r0][c0] * f[r1][c1] - f[r0][c1] * f[r1][c0];
+    [
+        [c(1, 2, 1, 2) / j, -c(1, 2, 0, 2) / j, c(1, 2, 0, 1) / j],
+        [-c(0, 2, 1, 2) / j, c(0, 2, 0, 2) / j, -c(0, 2, 0, 1) / j],
+        [c(0, 1, 1, 2) / j, -c(0, 1, 0, 2) / j, c(0, 1, 0, 1) / j],
+    ]
+}
+
+/// Gauss points of the element ([−1, 1]³ coordinates); weights are 1.
+const GAUSS: f64 = 0.577_350_269_189_625_8;
+
+/// An element's sizes (mm along x, y, z) and the shape-function gradients at its Gauss points.
+#[derive(Debug, Clone, Copy)]
+pub struct Box8 {
+    /// Reference volume (mm³).
+    pub volume_mm3: f64,
+    /// ∂N_a/∂X_J at each Gauss point: `grad[g][a][J]`.
+    grad: [[[f64; 3]; 8]; 8],
+}
+
+impl Box8 {
+    /// The box of edge lengths `size` (mm). Local node a = ix + 2 iy + 4 iz, with ix, iy, iz ∈ {0, 1}
+    /// the low or high face along each axis.
+    pub fn new(size: [f64; 3]) -> Box8 {
+        let mut grad = [[[0.0; 3]; 8]; 8];
+        for (g, grad_g) in grad.iter_mut().enumerate() {
+            let xi = [
+                if g & 1 == 0 { -GAUSS } else { GAUSS },
+                if g & 2 == 0 { -GAUSS } else { GAUSS },
+                if g & 4 == 0 { -GAUSS } else { GAUSS },
+            ];
+            for (a, ga) in grad_g.iter_mut().enumerate() {
+                let s = [
+                    if a & 1 == 0 { -1.0 } else { 1.0 },
+                    if a & 2 == 0 { -1.0 } else { 1.0 },
+                    if a & 4 == 0 { -1.0 } else { 1.0 },
+                ];
+                let n = |d: usize| 0.5 * (1.0 + s[d] * xi[d]);
+                // dN/dξ_d = s_d / 2 · Π_{e≠d} (1 + s_e ξ_e)/2, and dξ_d/dX_d = 2 / size_d.
+                ga[0] = s[0] * n(1) * n(2) / size[0];
+                ga[1] = s[1] * n(0) * n(2) / size[1];
+                ga[2] = s[2] * n(0) * n(1) / size[2];
+            }
+        }
+        Box8 {
+            volume_mm3: size[0] * size[1] * size[2],
+            grad,
+        }
+    }
+}
+
+/// The element's deformation is outside what the material can take (J ≤ 0 at a Gauss point).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Inverted;
+
+/// Energy (kPa·mm³ = μJ), gradient (mN) and Hessian (mN/mm) of one element.
+pub struct ElementState {
+    /// Stored energy.
+    pub energy: f64,
+    /// ∂W/∂u, `[a * 3 + i]`.
+    pub gradient: [f64; 24],
+    /// ∂²W/∂u∂u, `[(a * 3 + i) * 24 + b * 3 + k]` (filled only when asked).
+    pub hessian: Vec<f64>,
+}
+
+/// Deformation gradients F = I + Σ_a u_a ⊗ ∇N_a at the Gauss points.
+fn deformation(b: &Box8, u: &[[f64; 3]; 8]) -> [Mat3; 8] {
+    let mut out = [[[0.0; 3]; 3]; 8];
+    for (f, grad) in out.iter_mut().zip(&b.grad) {
+        for i in 0..3 {
+            for jj in 0..3 {
+                let mut s = if i == jj { 1.0 } else { 0.0 };
+                for a in 0..8 {
+                    s += u[a][i] * grad[a][jj];
+                }
+                f[i][jj] = s;
+            }
+        }
+    }
+    out
+}
+
+/// The element's energy alone (line searches), or [`Inverted`].
+pub fn energy(m: &NeoHookean, b: &Box8, u: &[[f64; 3]; 8]) -> Result<f64, Inverted> {
+    let w = b.volume_mm3 / 8.0;
+    let mut iso = 0.0;
+    let mut volume = 0.0;
+    for f in deformation(b, u) {
+        let j = det(&f);
+        if j <= 0.0 || !j.is_finite() {
+            return Err(Inverted);
+        }
+        let i1: f64 = f.iter().flatten().map(|x| x * x).sum();
+        iso += w * 0.5 * m.shear_kpa * (j.powf(-2.0 / 3.0) * i1 - 3.0);
+        volume += w * j;
+    }
+    let theta = volume / b.volume_mm3;
+    Ok(iso + b.volume_mm3 * 0.5 * m.bulk_kpa * (theta - 1.0).powi(2))
+}
+
+/// Energy, gradient and (when `with_hessian`) Hessian of one element, or [`Inverted`].
+pub fn evaluate(
+    m: &NeoHookean,
+    b: &Box8,
+    u: &[[f64; 3]; 8],
+    with_hessian: bool,
+) -> Result<ElementState, Inverted> {
+    let w = b.volume_mm3 / 8.0;
+    let fs = deformation(b, u);
+    let mut js = [0.0; 8];
+    let mut gs = [[[0.0; 3]; 3]; 8];
+    let mut volume = 0.0;
+    for g in 0..8 {
+        let j = det(&fs[g]);
+        if j <= 0.0 || !j.is_finite() {
+            return Err(Inverted);
+        }
+        js[g] = j;
+        gs[g] = inverse_transpose(&fs[g], j);
+        volume += w * j;
+    }
+    let theta = volume / b.volume_mm3;
+    // U(θ) = κ/2 (θ − 1)²: U' and U''.
+    let du = m.bulk_kpa * (theta - 1.0);
+    let ddu = m.bulk_kpa;
+    let mut energy = b.volume_mm3 * 0.5 * m.bulk_kpa * (theta - 1.0).powi(2);
+    let mut gradient = [0.0; 24];
+    // ∂v_e/∂u_ai = Σ_g w J G_iJ ∇N_aJ.
+    let mut dv = [0.0; 24];
+    let mut hessian = if with_hessian {
+        vec![0.0; 576]
+    } else {
+        Vec::new()
+    };
+    for g in 0..8 {
+        let (f, gi, j) = (&fs[g], &gs[g], js[g]);
+        let grad = &b.grad[g];
+        let i1: f64 = f.iter().flatten().map(|x| x * x).sum();
+        let jm23 = j.powf(-2.0 / 3.0);
+        let c = m.shear_kpa * jm23;
+        energy += w * 0.5 * m.shear_kpa * (jm23 * i1 - 3.0);
+        // P_iso = μ J^(−2/3) (F − I₁/3 F⁻ᵀ).
+        let mut p = [[0.0; 3]; 3];
+        for i in 0..3 {
+            for jj in 0..3 {
+                p[i][jj] = c * (f[i][jj] - i1 / 3.0 * gi[i][jj]);
+            }
+        }
+        for a in 0..8 {
+            for i in 0..3 {
+                let mut s = 0.0;
+                let mut sv = 0.0;
+                for jj in 0..3 {
+                    s += p[i][jj] * grad[a][jj];
+                    sv += j * gi[i][jj] * grad[a][jj];
+                }
+                gradient[a * 3 + i] += w * s;
+                dv[a * 3 + i] += w * sv;
+            }
+        }
+        if !with_hessian {
+            continue;
+        }
+        // A_iJkL = ∂P_iJ/∂F_kL of the isochoric part, plus U'(θ) ∂(J F⁻ᵀ)_iJ/∂F_kL:
+        // c[δ_ik δ_JL − ⅔ F_iJ G_kL − ⅔ G_iJ F_kL + (2/9) I₁ G_iJ G_kL + ⅓ I₁ G_iL G_kJ]
+        // + U' J (G_iJ G_kL − G_iL G_kJ), with G = F⁻ᵀ.
+        let mut tangent = [[0.0; 9]; 9];
+        for i in 0..3 {
+            for jj in 0..3 {
+                for k in 0..3 {
+                    for l in 0..3 {
+                        let delta = if i == k && jj == l { 1.0 } else { 0.0 };
+                        let iso = c
+                            * (delta
+                                - 2.0 / 3.0 * f[i][jj] * gi[k][l]
+                                - 2.0 / 3.0 * gi[i][jj] * f[k][l]
+                                + 2.0 / 9.0 * i1 * gi[i][jj] * gi[k][l]
+                                + i1 / 3.0 * gi[i][l] * gi[k][jj]);
+                        let vol = du * j * (gi[i][jj] * gi[k][l] - gi[i][l] * gi[k][jj]);
+                        tangent[i * 3 + jj][k * 3 + l] = iso + vol;
+                    }
+                }
+            }
+        }
+        // T[a][i][k][L] = Σ_J ∇N_aJ A_iJkL; K[ai][bk] += w Σ_L T[a][i][k][L] ∇N_bL.
+        for a in 0..8 {
+            let mut t = [[[0.0; 3]; 3]; 3];
+            for i in 0..3 {
+                for k in 0..3 {
+                    for l in 0..3 {
+                        let mut s = 0.0;
+                        for jj in 0..3 {
+                            s += grad[a][jj] * tangent[i * 3 + jj][k * 3 + l];
+                        }
+                        t[i][k][l] = s;
+                    }
+                }
+            }
+            for bb in 0..8 {
+                for i in 0..3 {
+                    for k in 0..3 {
+                        let s: f64 = (0..3).map(|l| t[i][k][l] * grad[bb][l]).sum();
+                        hessian[(a * 3 + i) * 24 + bb * 3 + k] += w * s;
+                    }
+                }
+            }
+        }
+    }
+    for (gr, d) in gradient.iter_mut().zip(&dv) {
+        *gr += du * d;
+    }
+    if with_hessian {
+        // The mean dilatation's rank-one term U''(θ)/V_e ∂v_e/∂u ⊗ ∂v_e/∂u.
+        let s = ddu / b.volume_mm3;
+        for r in 0..24 {
+            for c in 0..24 {
+                hessian[r * 24 + c] += s * dv[r] * dv[c];
+            }
+        }
+    }
+    Ok(ElementState {
+        energy,
+        gradient,
+        hessian,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn material() -> NeoHookean {
+        NeoHookean::from_young(300.0, 0.45)
+    }
+
+    fn deformed(scale: f64) -> [[f64; 3]; 8] {
+        // A smooth, non-affine displacement of the unit-ish box.
+        let mut u = [[0.0; 3]; 8];
+        for (a, ua) in u.iter_mut().enumerate() {
+            let x = [(a & 1) as f64, ((a >> 1) & 1) as f64, ((a >> 2) & 1) as f64];
+            ua[0] = scale * (0.3 * x[1] + 0.1 * x[0] * x[2]);
+            ua[1] = scale * (-0.2 * x[2] + 0.15 * x[0]);
+            ua[2] = scale * (-0.25 * x[2] + 0.05 * x[0] * x[1]);
+        }
+        u
+    }
+
+    #[test]
+    fn gradient_and_hessian_match_finite_differences() {
+        let m = material();
+        let b = Box8::new([1.0, 0.7, 0.5]);
+        let u = deformed(1.0);
+        let s = evaluate(&m, &b, &u, true).unwrap();
+        let h = 1e-6;
+        for r in 0..24 {
+            let mut up = u;
+            let mut um = u;
+            up[r / 3][r % 3] += h;
+            um[r / 3][r % 3] -= h;
+            let fd = (energy(&m, &b, &up).unwrap() - energy(&m, &b, &um).unwrap()) / (2.0 * h);
+            assert!(
+                (fd - s.gradient[r]).abs() < 1e-5 * (1.0 + fd.abs()),
+                "gradient {r}"
+            );
+            let gp = evaluate(&m, &b, &up, false).unwrap().gradient;
+            let gm = evaluate(&m, &b, &um, false).unwrap().gradient;
+            for c in 0..24 {
+                let fd = (gp[c] - gm[c]) / (2.0 * h);
+                let an = s.hessian[c * 24 + r];
+                assert!(
+                    (fd - an).abs() < 1e-4 * (1.0 + an.abs()),
+                    "hessian {c},{r}: {fd} vs {an}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn rigid_rotation_stores_no_energy() {
+        let m = material();
+        let b = Box8::new([1.0, 2.0, 0.5]);
+        let (c, s) = (0.6f64.cos(), 0.6f64.sin());
+        let mut u = [[0.0; 3]; 8];
+        for (a, ua) in u.iter_mut().enumerate() {
+            let x = [
+                (a & 1) as f64,
+                2.0 * ((a >> 1) & 1) as f64,
+                0.5 * ((a >> 2) & 1) as f64,
+            ];
+            ua[0] = c * x[0] - s * x[1] - x[0] + 0.3;
+            ua[1] = s * x[0] + c * x[1] - x[1];
+            ua[2] = 0.1;
+        }
+        let st = evaluate(&m, &b, &u, false).unwrap();
+        assert!(st.energy.abs() < 1e-9);
+        assert!(st.gradient.iter().all(|g| g.abs() < 1e-9));
+    }
+
+    #[test]
+    fn small_strain_uniaxial_stress_gives_youngs_modulus() {
+        // Stretch ε along z with the lateral contraction ν ε: the stress along z is E ε, so the
+        // nodal forces on the top face sum to E ε A.
+        let (e, nu) = (300.0, 0.3);
+        let m = NeoHookean::from_young(e, nu);
+        let b = Box8::new([1.0, 1.0, 1.0]);
+        let eps = 1e-6;
+        let mut u = [[0.0; 3]; 8];
+        for (a, ua) in u.iter_mut().enumerate() {
+            let x = [(a & 1) as f64, ((a >> 1) & 1) as f64, ((a >> 2) & 1) as f64];
+            *ua = [-nu * eps * x[0], -nu * eps * x[1], eps * x[2]];
+        }
+        let st = evaluate(&m, &b, &u, false).unwrap();
+        let top: f64 = (4..8).map(|a| st.gradient[a * 3 + 2]).sum();
+        assert!((top - e * eps).abs() < 1e-3 * e * eps, "{top}");
+        let side: f64 = [1, 3, 5, 7].iter().map(|a| st.gradient[a * 3]).sum();
+        assert!(side.abs() < 1e-3 * e * eps, "{side}");
+    }
+
+    #[test]
+    fn inversion_is_reported() {
+        let m = material();
+        let b = Box8::new([1.0, 1.0, 1.0]);
+        let mut u = [[0.0; 3]; 8];
+        for ua in u.iter_mut().skip(4) {
+            ua[2] = -1.5;
+        }
+        assert_eq!(energy(&m, &b, &u).err(), Some(Inverted));
+        assert!(evaluate(&m, &b, &u, true).is_err());
+    }
+}

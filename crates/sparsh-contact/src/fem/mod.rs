@@ -1,0 +1,1431 @@
+//! The finite-strain rung: the gel as a nearly incompressible neo-Hookean solid meshed in 3-D,
+//! bonded to the rigid window at its base, pressed by the rigid indenter.
+//!
+//! - **Material and element**: [`element`] — total-Lagrangian 8-node boxes with the
+//!   mean-dilatation (Q1/P0) volumetric term, so ν → 0.5 does not lock.
+//! - **Mesh**: [`mesh`] — a graded tensor-product grid covering the sensor grid plus a margin,
+//!   with a uniform fine zone (`elements_per_radius` elements per contact radius) around the
+//!   penetrating cells; rebuilt, with the state carried over by interpolation, when the contact
+//!   leaves the fine zone or outgrows its resolution.
+//! - **Contact**: node-to-rigid-surface. Each surface node's gap is the indenter height above
+//!   its *deformed* position (bilinear in the gap field) minus its deflection; the normal
+//!   constraint is enforced by an augmented Lagrangian (Alart & Curnier 1991; Wriggers,
+//!   *Computational Contact Mechanics*, ch. 6), Coulomb friction by a penalty-regularised
+//!   return map on the increment since the previous frame (the path history), with the friction
+//!   bound μp fixed over each Newton solve and updated with the multipliers (Laursen & Simo
+//!   1993).
+//! - **Solution**: for fixed multipliers the problem is the minimum of a potential (strain
+//!   energy + contact + friction), solved by Newton with an Armijo backtracking line search on
+//!   that potential (inverted elements count as infinite energy, so a step never inverts one);
+//!   the Hessian is factorised by faer's sparse supernodal Cholesky, its symbolic analysis
+//!   reused across iterations and frames, single-threaded so the answer does not depend on the
+//!   thread count. A Hessian that is not positive definite (buckling, strong compression) is
+//!   shifted (Levenberg) until it is.
+//! - **Fields**: displacement, pressure and traction interpolated from the surface nodes onto the
+//!   sensor grid at the material point that sits above each cell after deformation (Eulerian
+//!   view, what the camera sees); forces are the nodal sums.
+
+mod element;
+mod mesh;
+
+use std::sync::Arc;
+
+use faer::Par;
+use faer::dyn_stack::{MemBuffer, MemStack};
+use faer::sparse::linalg::cholesky::{SymbolicCholesky, factorize_symbolic_cholesky};
+use faer::sparse::{SparseColMatRef, SymbolicSparseColMatRef};
+use faer::{Conj, MatMut, Side};
+use rayon::prelude::*;
+use sparsh_scene::{Gel, Grid};
+
+pub use element::NeoHookean;
+use element::{Box8, evaluate};
+use mesh::{Mesh, graded_axis, graded_depth, locate};
+
+use crate::{ContactError, ContactInput, ContactSolver, Fields, NormalControl};
+
+/// Poisson ratio the rung uses for an exactly incompressible gel (κ/μ = 5000).
+pub const NU_INCOMPRESSIBLE: f64 = 0.4999;
+
+/// Mesh and iteration settings of the finite-element rung.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FemOptions {
+    /// Elements per contact radius in the fine zone.
+    pub elements_per_radius: f64,
+    /// Size ratio of neighbouring elements outside the fine zone.
+    pub growth: f64,
+    /// Normal and tangential penalty as a multiple of E / (fine element size).
+    pub penalty: f64,
+    /// Newton iterations per solve before [`ContactError::NotConverged`].
+    pub max_newton: usize,
+    /// Multiplier updates per frame before [`ContactError::NotConverged`].
+    pub max_updates: usize,
+    /// The multiplier update stops when no node's pressure changes by more than this fraction
+    /// of the peak pressure.
+    pub pressure_tolerance: f64,
+    /// Start each frame's Newton iteration from the previous frame's solution (else from rest).
+    pub warm_start: bool,
+}
+
+impl Default for FemOptions {
+    fn default() -> Self {
+        FemOptions {
+            elements_per_radius: 8.0,
+            growth: 1.6,
+            penalty: 100.0,
+            max_newton: 60,
+            max_updates: 40,
+            pressure_tolerance: 1e-3,
+            warm_start: true,
+        }
+    }
+}
+
+/// Work done on the last frame.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct FemStats {
+    /// Newton iterations (each one Hessian factorisation).
+    pub newton_iterations: usize,
+    /// Multiplier updates.
+    pub updates: usize,
+    /// Free degrees of freedom of the mesh.
+    pub dofs: usize,
+    /// Elements of the mesh.
+    pub elements: usize,
+    /// Times the mesh was rebuilt this frame.
+    pub remeshes: usize,
+}
+
+/// The finite-strain rung (`solver = "fem"`).
+pub struct Fem {
+    gel: Gel,
+    grid: Grid,
+    material: NeoHookean,
+    options: FemOptions,
+    state: Option<State>,
+    stats: FemStats,
+}
+
+/// The sparse Hessian's lower triangle (CSC) and its symbolic Cholesky.
+struct System {
+    col_ptr: Vec<usize>,
+    row_idx: Vec<usize>,
+    symbolic: Arc<SymbolicCholesky<usize>>,
+    /// Per element, per (row, column) pair of its local dofs: the position in `row_idx`, or
+    /// `usize::MAX` when the pair is above the diagonal or involves a fixed dof.
+    scatter: Vec<[u32; 576]>,
+}
+
+/// Solution and path history on one mesh.
+struct State {
+    mesh: Mesh,
+    system: Arc<System>,
+    /// Displacement of every node (3 per node; the window's nodes stay 0).
+    u: Vec<f64>,
+    /// Augmented-Lagrangian multiplier per surface node (kPa).
+    lambda: Vec<f64>,
+    /// Friction bound μp per surface node for the current solve (kPa).
+    bound: Vec<f64>,
+    /// Friction traction (indenter on gel, reversed: gel on indenter) per surface node at the
+    /// end of the previous frame (kPa).
+    q_prev: Vec<[f64; 2]>,
+    /// Surface nodes' tangential displacement at the end of the previous frame (mm).
+    ut_prev: Vec<[f64; 2]>,
+    /// Extra approach of the previous frame (load control's first guess; mm).
+    offset_mm: f64,
+}
+
+/// The indenter above the gel for one frame: heights on the grid's cell centres, an extra
+/// approach, and the rigid tangential shift since the previous frame.
+struct Indenter<'a> {
+    grid: Grid,
+    height_mm: &'a [f64],
+    approach_mm: f64,
+    shift_mm: &'a [[f64; 2]],
+}
+
+/// Tangential penalty over the normal one: the stick springs add about 0.4 % to the contact's
+/// tangential compliance at 8 elements per radius, and the stick/slip kink stays mild enough for
+/// Newton.
+const TANGENTIAL_PENALTY: f64 = 0.25;
+
+/// Thickest gel, in contact radii, the rung meshes once the contact is resolved (2 cells).
+const THICK_BLOCK: f64 = 20.0;
+
+/// Height treated as "nothing above" (mm) where the gap is not finite or off the grid.
+const FAR_MM: f64 = 1e3;
+
+impl Indenter<'_> {
+    /// Bilinear height of the indenter above (x, y) and its slope, lowered by the approach.
+    fn height(&self, x: f64, y: f64) -> (f64, f64, f64) {
+        let g = self.grid;
+        let fx = x / g.cell_mm + g.nx as f64 / 2.0 - 0.5;
+        let fy = y / g.cell_mm + g.ny as f64 / 2.0 - 0.5;
+        if !(fx >= 0.0 && fy >= 0.0 && fx <= (g.nx - 1) as f64 && fy <= (g.ny - 1) as f64) {
+            return (FAR_MM, 0.0, 0.0);
+        }
+        let i = (fx.floor() as usize).min(g.nx.saturating_sub(2));
+        let j = (fy.floor() as usize).min(g.ny.saturating_sub(2));
+        let (tx, ty) = (fx - i as f64, fy - j as f64);
+        let at = |i: usize, j: usize| {
+            let v = self.height_mm[j * g.nx + i];
+            if v.is_finite() { v.min(FAR_MM) } else { FAR_MM }
+        };
+        let (h00, h10, h01, h11) = (at(i, j), at(i + 1, j), at(i, j + 1), at(i + 1, j + 1));
+        let h = h00 * (1.0 - tx) * (1.0 - ty)
+            + h10 * tx * (1.0 - ty)
+            + h01 * (1.0 - tx) * ty
+            + h11 * tx * ty;
+        let hx = ((h10 - h00) * (1.0 - ty) + (h11 - h01) * ty) / g.cell_mm;
+        let hy = ((h01 - h00) * (1.0 - tx) + (h11 - h10) * tx) / g.cell_mm;
+        (h - self.approach_mm, hx, hy)
+    }
+
+    /// Bilinear rigid shift at (x, y) (zero off the grid).
+    fn shift(&self, x: f64, y: f64) -> [f64; 2] {
+        let g = self.grid;
+        let fx = (x / g.cell_mm + g.nx as f64 / 2.0 - 0.5).clamp(0.0, (g.nx - 1) as f64);
+        let fy = (y / g.cell_mm + g.ny as f64 / 2.0 - 0.5).clamp(0.0, (g.ny - 1) as f64);
+        let i = (fx.floor() as usize).min(g.nx.saturating_sub(2));
+        let j = (fy.floor() as usize).min(g.ny.saturating_sub(2));
+        let (tx, ty) = (fx - i as f64, fy - j as f64);
+        let at =
+            |i: usize, j: usize, c: usize| self.shift_mm.get(j * g.nx + i).map_or(0.0, |s| s[c]);
+        let mut out = [0.0; 2];
+        for (c, o) in out.iter_mut().enumerate() {
+            *o = at(i, j, c) * (1.0 - tx) * (1.0 - ty)
+                + at(i + 1, j, c) * tx * (1.0 - ty)
+                + at(i, j + 1, c) * (1.0 - tx) * ty
+                + at(i + 1, j + 1, c) * tx * ty;
+        }
+        out
+    }
+}
+
+/// A potential's value, gradient over the free dofs and (optionally) Hessian values.
+struct Assembled {
+    energy: f64,
+    /// Largest nodal contact force (mN).
+    peak_contact_force: f64,
+    gradient: Vec<f64>,
+    hessian: Vec<f64>,
+}
+
+/// What failed inside a solve.
+enum Failure {
+    NotConverged { iterations: usize, residual: f64 },
+    Inverted,
+}
+
+impl Fem {
+    /// The rung for `gel` on `grid`.
+    pub fn new(gel: Gel, grid: Grid) -> Fem {
+        let nu = gel.poisson_ratio.min(NU_INCOMPRESSIBLE);
+        Fem {
+            gel,
+            grid,
+            material: NeoHookean::from_young(gel.youngs_modulus_kpa, nu),
+            options: FemOptions::default(),
+            state: None,
+            stats: FemStats::default(),
+        }
+    }
+
+    /// Replaces the mesh and iteration settings.
+    pub fn with_options(mut self, options: FemOptions) -> Fem {
+        self.options = options;
+        self
+    }
+
+    /// Work done on the last frame.
+    pub fn stats(&self) -> FemStats {
+        self.stats
+    }
+
+    /// Element size of the fine zone for a contact of radius `radius_mm`: `elements_per_radius`
+    /// per radius, but no finer than the grid the fields are sampled on and no coarser than
+    /// half the gel.
+    fn fine_mm(&self, radius_mm: f64) -> f64 {
+        (radius_mm / self.options.elements_per_radius)
+            .max(self.grid.cell_mm)
+            .min(self.gel.thickness_mm / 2.0)
+    }
+
+    /// Penalty (kPa/mm) on a mesh.
+    fn penalty(&self, mesh: &Mesh) -> f64 {
+        self.options.penalty * self.gel.youngs_modulus_kpa / mesh.fine_mm
+    }
+
+    /// The mesh for a contact whose penetrating cells span `bbox` = [x0, x1, y0, y1] with an
+    /// equivalent radius `radius_mm`.
+    fn build_mesh(&self, bbox: [f64; 4], radius_mm: f64) -> Mesh {
+        let h = self.gel.thickness_mm;
+        let fine = self.fine_mm(radius_mm);
+        let pad = 0.3 * radius_mm + 2.0 * fine;
+        let zone = [bbox[0] - pad, bbox[1] + pad, bbox[2] - pad, bbox[3] + pad];
+        // The layer's displacements decay within a few thicknesses of the contact, a thick
+        // block's as 1/r² beyond a few contact radii.
+        let margin = 2.0 * h.min(10.0 * radius_mm) + 2.0 * radius_mm;
+        let half_x = self.grid.nx as f64 * self.grid.cell_mm / 2.0;
+        let half_y = self.grid.ny as f64 * self.grid.cell_mm / 2.0;
+        let growth = self.options.growth;
+        Mesh {
+            x: graded_axis(
+                (-half_x).min(zone[0] - margin),
+                half_x.max(zone[1] + margin),
+                zone[0],
+                zone[1],
+                fine,
+                growth,
+            ),
+            y: graded_axis(
+                (-half_y).min(zone[2] - margin),
+                half_y.max(zone[3] + margin),
+                zone[2],
+                zone[3],
+                fine,
+                growth,
+            ),
+            z: graded_depth(h, fine, growth, 6),
+            fine_zone: zone,
+            fine_mm: fine,
+        }
+    }
+
+    /// The state on `mesh`, carried over from `old` by interpolation (or at rest).
+    fn new_state(&self, mesh: Mesh, old: Option<&State>) -> State {
+        let system = Arc::new(build_system(&mesh));
+        let surface = mesh.x.len() * mesh.y.len();
+        let mut state = State {
+            u: vec![0.0; 3 * mesh.nodes()],
+            lambda: vec![0.0; surface],
+            bound: vec![0.0; surface],
+            q_prev: vec![[0.0; 2]; surface],
+            ut_prev: vec![[0.0; 2]; surface],
+            offset_mm: old.map_or(0.0, |o| o.offset_mm),
+            mesh,
+            system,
+        };
+        if let Some(old) = old {
+            let m = &state.mesh;
+            for n in 0..m.nodes() {
+                let p = m.position(n);
+                let v = old.interpolate_volume(p);
+                state.u[3 * n..3 * n + 3].copy_from_slice(&v);
+            }
+            for n in 0..surface {
+                let p = m.position(n);
+                let s = old.interpolate_surface(p[0], p[1]);
+                state.lambda[n] = s.lambda;
+                state.bound[n] = s.bound;
+                state.q_prev[n] = s.q_prev;
+                state.ut_prev[n] = s.ut_prev;
+            }
+        }
+        state
+    }
+
+    /// Assembles the potential at `u` (fixed multipliers and friction bounds).
+    fn assemble(
+        &self,
+        st: &State,
+        u: &[f64],
+        ind: &Indenter,
+        hessian: bool,
+    ) -> Result<Assembled, Failure> {
+        let mesh = &st.mesh;
+        let sys = &st.system;
+        let [nx, ny, nz] = mesh.counts();
+        let nfree = mesh.free_dofs();
+        let mut gradient = vec![0.0; nfree];
+        let mut values = if hessian {
+            vec![0.0; sys.row_idx.len()]
+        } else {
+            Vec::new()
+        };
+        let mut energy = 0.0;
+        let (ex, ey) = (nx - 1, ny - 1);
+        let n_el = mesh.elements();
+        const CHUNK: usize = 2048;
+        for start in (0..n_el).step_by(CHUNK) {
+            let results: Vec<Result<(usize, element::ElementState, [usize; 8]), Failure>> = (start
+                ..(start + CHUNK).min(n_el))
+                .into_par_iter()
+                .map(|e| {
+                    let (i, j, k) = (e % ex, (e / ex) % ey, e / (ex * ey));
+                    let nodes = mesh.element_nodes(i, j, k);
+                    let b = Box8::new(mesh.element_size(i, j, k));
+                    let mut ue = [[0.0; 3]; 8];
+                    for (a, &n) in nodes.iter().enumerate() {
+                        ue[a].copy_from_slice(&u[3 * n..3 * n + 3]);
+                    }
+                    let s = evaluate(&self.material, &b, &ue, hessian)
+                        .map_err(|_| Failure::Inverted)?;
+                    Ok((e, s, nodes))
+                })
+                .collect();
+            for r in results {
+                let (e, s, nodes) = r?;
+                energy += s.energy;
+                for (a, &n) in nodes.iter().enumerate() {
+                    if 3 * n < nfree {
+                        for c in 0..3 {
+                            gradient[3 * n + c] += s.gradient[a * 3 + c];
+                        }
+                    }
+                }
+                if hessian {
+                    let map = &sys.scatter[e];
+                    for (pos, &slot) in map.iter().enumerate() {
+                        if slot != u32::MAX {
+                            values[slot as usize] += s.hessian[pos];
+                        }
+                    }
+                }
+            }
+        }
+        let _ = nz;
+        // Contact and friction on the surface nodes (k = 0).
+        let eps = self.penalty(mesh);
+        let mut peak_contact_force = 0.0f64;
+        for n in 0..nx * ny {
+            let (i, j) = (n % nx, n / nx);
+            let area = mesh.surface_area_mm2(i, j);
+            let c = contact_terms(
+                st,
+                n,
+                area,
+                eps,
+                &u[3 * n..3 * n + 3],
+                [mesh.x[i], mesh.y[j]],
+                ind,
+            );
+            energy += c.energy;
+            peak_contact_force = peak_contact_force.max(area * c.pressure);
+            for d in 0..3 {
+                gradient[3 * n + d] += c.gradient[d];
+            }
+            if hessian {
+                let diag = sys.col_ptr[3 * n];
+                for col in 0..3 {
+                    let base = sys.col_ptr[3 * n + col];
+                    let _ = diag;
+                    // Column 3n + col holds rows 3n + col, 3n + col + 1, … first (ascending).
+                    for row in col..3 {
+                        values[base + (row - col)] += c.hessian[row][col];
+                    }
+                }
+            }
+        }
+        Ok(Assembled {
+            energy,
+            peak_contact_force,
+            gradient,
+            hessian: values,
+        })
+    }
+
+    /// The potential alone at `u` (line searches).
+    fn energy(&self, st: &State, u: &[f64], ind: &Indenter) -> Result<f64, Failure> {
+        let mesh = &st.mesh;
+        let [nx, ny, _] = mesh.counts();
+        let (ex, ey) = (nx - 1, ny - 1);
+        let parts: Vec<Result<f64, Failure>> = (0..mesh.elements())
+            .into_par_iter()
+            .map(|e| {
+                let (i, j, k) = (e % ex, (e / ex) % ey, e / (ex * ey));
+                let nodes = mesh.element_nodes(i, j, k);
+                let mut ue = [[0.0; 3]; 8];
+                for (a, &n) in nodes.iter().enumerate() {
+                    ue[a].copy_from_slice(&u[3 * n..3 * n + 3]);
+                }
+                element::energy(&self.material, &Box8::new(mesh.element_size(i, j, k)), &ue)
+                    .map_err(|_| Failure::Inverted)
+            })
+            .collect();
+        let mut energy = 0.0;
+        for p in parts {
+            energy += p?;
+        }
+        let eps = self.penalty(mesh);
+        for n in 0..nx * ny {
+            let (i, j) = (n % nx, n / nx);
+            let area = mesh.surface_area_mm2(i, j);
+            let xy = [mesh.x[i], mesh.y[j]];
+            energy += contact_terms(st, n, area, eps, &u[3 * n..3 * n + 3], xy, ind).energy;
+        }
+        Ok(energy)
+    }
+
+    /// Minimises the potential for fixed multipliers: Newton with a backtracking line search.
+    fn newton(&mut self, st: &mut State, ind: &Indenter) -> Result<(), Failure> {
+        let nfree = st.mesh.free_dofs();
+        let length = ind_scale(st);
+        // Nodal forces below 1e-5 of the largest contact force (and below 1e-8 of E times a
+        // fine element's face, round-off of the volumetric terms) are noise (mN).
+        let floor = 1e-8 * self.gel.youngs_modulus_kpa * st.mesh.fine_mm.powi(2);
+        for it in 0..self.options.max_newton {
+            let a = self.assemble(st, &st.u, ind, true)?;
+            let residual = a.gradient.iter().fold(0.0f64, |m, g| m.max(g.abs()));
+            if residual <= (1e-5 * a.peak_contact_force).max(floor) {
+                return Ok(());
+            }
+            self.stats.newton_iterations += 1;
+            let mut step: Vec<f64> = a.gradient.iter().map(|g| -g).collect();
+            solve_shifted(&st.system, &a.hessian, &mut step);
+            let slope: f64 = step.iter().zip(&a.gradient).map(|(s, g)| s * g).sum();
+            let step_max = step.iter().fold(0.0f64, |m, s| m.max(s.abs()));
+            if step_max <= 1e-10 * length {
+                return Ok(());
+            }
+            let mut alpha = 1.0;
+            let mut accepted = false;
+            let mut trial = st.u.clone();
+            for _ in 0..40 {
+                for (t, (u, s)) in trial[..nfree]
+                    .iter_mut()
+                    .zip(st.u[..nfree].iter().zip(&step))
+                {
+                    *t = u + alpha * s;
+                }
+                if let Ok(e) = self.energy(st, &trial, ind) {
+                    if e <= a.energy + 1e-4 * alpha * slope {
+                        accepted = true;
+                        break;
+                    }
+                }
+                // Near the solution the energy's decrease drowns in round-off: accept the full
+                // step when it shrinks the residual instead.
+                if alpha == 1.0 && -slope <= 1e-10 * a.energy.abs() {
+                    if let Ok(t) = self.assemble(st, &trial, ind, false) {
+                        let r = t.gradient.iter().fold(0.0f64, |m, g| m.max(g.abs()));
+                        if r < 0.5 * residual {
+                            accepted = true;
+                            break;
+                        }
+                    }
+                }
+                alpha *= 0.5;
+            }
+            if !accepted {
+                let residual = a.gradient.iter().fold(0.0f64, |m, g| m.max(g.abs()));
+                return Err(Failure::NotConverged {
+                    iterations: it + 1,
+                    residual,
+                });
+            }
+            st.u = trial;
+            if alpha == 1.0 && step_max <= 1e-8 * length {
+                return Ok(());
+            }
+        }
+        let a = self.assemble(st, &st.u, ind, false)?;
+        Err(Failure::NotConverged {
+            iterations: self.options.max_newton,
+            residual: a.gradient.iter().fold(0.0f64, |m, g| m.max(g.abs())),
+        })
+    }
+
+    /// Solves one frame on the current mesh: Newton solves alternating with multiplier updates.
+    fn solve_fixed(&mut self, st: &mut State, ind: &Indenter) -> Result<(), Failure> {
+        let eps = self.penalty(&st.mesh);
+        let nx = st.mesh.x.len();
+        for update in 0..self.options.max_updates {
+            self.newton(st, ind)?;
+            self.stats.updates += 1;
+            let mut peak = 0.0f64;
+            let mut change = 0.0f64;
+            let mut pressures = Vec::with_capacity(st.lambda.len());
+            for n in 0..st.lambda.len() {
+                let (i, j) = (n % nx, n / nx);
+                let g = deformed_gap(&st.u[3 * n..3 * n + 3], [st.mesh.x[i], st.mesh.y[j]], ind);
+                let p = (st.lambda[n] - eps * g).max(0.0);
+                change = change.max((p - st.lambda[n]).abs());
+                peak = peak.max(p);
+                pressures.push(p);
+            }
+            let bound_change = pressures
+                .iter()
+                .zip(&st.bound)
+                .fold(0.0f64, |m, (p, b)| m.max((self.gel.friction * p - b).abs()));
+            for (n, p) in pressures.into_iter().enumerate() {
+                st.lambda[n] = p;
+                st.bound[n] = self.gel.friction * p;
+            }
+            let tol = self.options.pressure_tolerance * peak.max(1e-12);
+            if update > 0 && change <= tol && bound_change <= tol.max(1e-300) {
+                return Ok(());
+            }
+            if peak == 0.0 && update > 0 {
+                return Ok(());
+            }
+        }
+        Err(Failure::NotConverged {
+            iterations: self.options.max_updates,
+            residual: f64::NAN,
+        })
+    }
+}
+
+/// The smallest finite gap of a frame (mm; negative = penetration).
+fn deepest_gap(input: &ContactInput) -> f64 {
+    input
+        .gap
+        .gap_mm
+        .iter()
+        .filter(|g| g.is_finite())
+        .fold(f64::INFINITY, |m, &g| m.min(g))
+}
+
+/// A length scale for step tolerances: the largest displacement, at least 1 µm.
+fn ind_scale(st: &State) -> f64 {
+    st.u.iter().fold(1e-3f64, |m, u| m.max(u.abs()))
+}
+
+/// Gap of a surface node at reference (x, y) with displacement `u` (mm).
+fn deformed_gap(u: &[f64], xy: [f64; 2], ind: &Indenter) -> f64 {
+    let (h, _, _) = ind.height(xy[0] + u[0], xy[1] + u[1]);
+    h - u[2]
+}
+
+/// One surface node's contact and friction potential, gradient and Hessian block.
+struct NodeTerms {
+    energy: f64,
+    gradient: [f64; 3],
+    hessian: [[f64; 3]; 3],
+    pressure: f64,
+    traction: [f64; 2],
+    slip: bool,
+}
+
+fn contact_terms(
+    st: &State,
+    n: usize,
+    area: f64,
+    eps: f64,
+    u: &[f64],
+    xy: [f64; 2],
+    ind: &Indenter,
+) -> NodeTerms {
+    let mut t = NodeTerms {
+        energy: 0.0,
+        gradient: [0.0; 3],
+        hessian: [[0.0; 3]; 3],
+        pressure: 0.0,
+        traction: [0.0; 2],
+        slip: false,
+    };
+    let (h, hx, hy) = ind.height(xy[0] + u[0], xy[1] + u[1]);
+    let g = h - u[2];
+    let p = (st.lambda[n] - eps * g).max(0.0);
+    if p > 0.0 {
+        // A/(2ε) max(0, λ − ε g)²: gradient −A p ∇g, Hessian A ε ∇g ∇gᵀ (the indenter's
+        // curvature term dropped), ∇g = (∂h/∂x, ∂h/∂y, −1).
+        let dg = [hx, hy, -1.0];
+        t.energy += area * p * p / (2.0 * eps);
+        for r in 0..3 {
+            t.gradient[r] -= area * p * dg[r];
+            for c in 0..3 {
+                t.hessian[r][c] += area * eps * dg[r] * dg[c];
+            }
+        }
+        t.pressure = p;
+    }
+    let b = st.bound[n];
+    if b > 0.0 {
+        let shift = ind.shift(xy[0] + st.ut_prev[n][0], xy[1] + st.ut_prev[n][1]);
+        let w = [
+            u[0] - st.ut_prev[n][0] - shift[0],
+            u[1] - st.ut_prev[n][1] - shift[1],
+        ];
+        let et = TANGENTIAL_PENALTY * eps;
+        let trial = [st.q_prev[n][0] + et * w[0], st.q_prev[n][1] + et * w[1]];
+        let norm = trial[0].hypot(trial[1]);
+        if norm <= b {
+            t.energy += area * norm * norm / (2.0 * et);
+            for d in 0..2 {
+                t.gradient[d] += area * trial[d];
+                t.hessian[d][d] += area * et;
+            }
+            t.traction = [-trial[0], -trial[1]];
+        } else {
+            let dir = [trial[0] / norm, trial[1] / norm];
+            t.energy += area * (b * norm - 0.5 * b * b) / et;
+            for d in 0..2 {
+                t.gradient[d] += area * b * dir[d];
+                for e in 0..2 {
+                    let delta = if d == e { 1.0 } else { 0.0 };
+                    t.hessian[d][e] += area * et * (b / norm) * (delta - dir[d] * dir[e]);
+                }
+            }
+            t.traction = [-b * dir[0], -b * dir[1]];
+            t.slip = true;
+        }
+    }
+    t
+}
+
+/// Interpolated surface history at a point.
+struct SurfaceSample {
+    lambda: f64,
+    bound: f64,
+    q_prev: [f64; 2],
+    ut_prev: [f64; 2],
+}
+
+/// The previous frame's path history on the surface nodes.
+struct History {
+    mesh: Mesh,
+    q_prev: Vec<[f64; 2]>,
+    ut_prev: Vec<[f64; 2]>,
+}
+
+impl State {
+    fn history(&self) -> History {
+        History {
+            mesh: self.mesh.clone(),
+            q_prev: self.q_prev.clone(),
+            ut_prev: self.ut_prev.clone(),
+        }
+    }
+
+    /// Puts back the previous frame's history (on this state's mesh when it has not changed).
+    fn restore_history(&mut self, h: &History) {
+        if h.mesh == self.mesh {
+            self.q_prev.clone_from(&h.q_prev);
+            self.ut_prev.clone_from(&h.ut_prev);
+        }
+    }
+
+    /// Trilinear displacement at a reference point (clamped to the block).
+    fn interpolate_volume(&self, p: [f64; 3]) -> [f64; 3] {
+        let m = &self.mesh;
+        let (i, tx) = locate(&m.x, p[0]);
+        let (j, ty) = locate(&m.y, p[1]);
+        // z descends with k: locate on −z.
+        let neg: Vec<f64> = m.z.iter().map(|z| -z).collect();
+        let (k, tz) = locate(&neg, -p[2]);
+        let mut out = [0.0; 3];
+        for a in 0..8 {
+            let (di, dj, dk) = (a & 1, (a >> 1) & 1, (a >> 2) & 1);
+            let w = if di == 1 { tx } else { 1.0 - tx }
+                * if dj == 1 { ty } else { 1.0 - ty }
+                * if dk == 1 { tz } else { 1.0 - tz };
+            let n = m.node(i + di, j + dj, k + dk);
+            for c in 0..3 {
+                out[c] += w * self.u[3 * n + c];
+            }
+        }
+        out
+    }
+
+    /// Bilinear weights of the surface nodes around (x, y).
+    fn surface_weights(&self, x: f64, y: f64) -> [(usize, f64); 4] {
+        let m = &self.mesh;
+        let (i, tx) = locate(&m.x, x);
+        let (j, ty) = locate(&m.y, y);
+        [
+            (m.node(i, j, 0), (1.0 - tx) * (1.0 - ty)),
+            (m.node(i + 1, j, 0), tx * (1.0 - ty)),
+            (m.node(i, j + 1, 0), (1.0 - tx) * ty),
+            (m.node(i + 1, j + 1, 0), tx * ty),
+        ]
+    }
+
+    fn interpolate_surface(&self, x: f64, y: f64) -> SurfaceSample {
+        let mut s = SurfaceSample {
+            lambda: 0.0,
+            bound: 0.0,
+            q_prev: [0.0; 2],
+            ut_prev: [0.0; 2],
+        };
+        for (n, w) in self.surface_weights(x, y) {
+            s.lambda += w * self.lambda[n];
+            s.bound += w * self.bound[n];
+            for c in 0..2 {
+                s.q_prev[c] += w * self.q_prev[n][c];
+                s.ut_prev[c] += w * self.ut_prev[n][c];
+            }
+        }
+        s
+    }
+}
+
+/// The Hessian's sparsity (every pair of nodes sharing an element, lower triangle) and the
+/// per-element scatter map.
+fn build_system(mesh: &Mesh) -> System {
+    let [nx, ny, nz] = mesh.counts();
+    let nfree = mesh.free_dofs();
+    let mut col_ptr = Vec::with_capacity(nfree + 1);
+    let mut row_idx = Vec::new();
+    col_ptr.push(0);
+    for dof in 0..nfree {
+        let n = dof / 3;
+        let (i, j, k) = (n % nx, (n / nx) % ny, n / (nx * ny));
+        for dk in -1i64..=1 {
+            for dj in -1i64..=1 {
+                for di in -1i64..=1 {
+                    let (ii, jj, kk) = (i as i64 + di, j as i64 + dj, k as i64 + dk);
+                    if ii < 0
+                        || jj < 0
+                        || kk < 0
+                        || ii >= nx as i64
+                        || jj >= ny as i64
+                        || kk >= nz as i64 - 1
+                    {
+                        continue;
+                    }
+                    let m = mesh.node(ii as usize, jj as usize, kk as usize);
+                    for c in 0..3 {
+                        let r = 3 * m + c;
+                        if r >= dof {
+                            row_idx.push(r);
+                        }
+                    }
+                }
+            }
+        }
+        col_ptr.push(row_idx.len());
+    }
+    let (ex, ey) = (nx - 1, ny - 1);
+    let scatter = (0..mesh.elements())
+        .into_par_iter()
+        .map(|e| {
+            let (i, j, k) = (e % ex, (e / ex) % ey, e / (ex * ey));
+            let nodes = mesh.element_nodes(i, j, k);
+            let mut map = [u32::MAX; 576];
+            for p in 0..24 {
+                for q in 0..24 {
+                    let (r, c) = (3 * nodes[p / 3] + p % 3, 3 * nodes[q / 3] + q % 3);
+                    if r >= nfree || c >= nfree || r < c {
+                        continue;
+                    }
+                    let rows = &row_idx[col_ptr[c]..col_ptr[c + 1]];
+                    let at = rows
+                        .binary_search(&r)
+                        .expect("pattern holds every element pair");
+                    map[p * 24 + q] = (col_ptr[c] + at) as u32;
+                }
+            }
+            map
+        })
+        .collect();
+    let symbolic = SymbolicSparseColMatRef::new_checked(nfree, nfree, &col_ptr, None, &row_idx);
+    let symbolic = factorize_symbolic_cholesky(
+        symbolic,
+        Side::Lower,
+        Default::default(),
+        Default::default(),
+    )
+    .expect("symbolic Cholesky of a mesh pattern");
+    System {
+        col_ptr,
+        row_idx,
+        symbolic: Arc::new(symbolic),
+        scatter,
+    }
+}
+
+/// Solves H x = b in place (b in `rhs`), shifting H by τ·diag(H) until it is positive definite.
+fn solve_shifted(sys: &System, values: &[f64], rhs: &mut [f64]) {
+    let n = rhs.len();
+    let symbolic = SymbolicSparseColMatRef::new_checked(n, n, &sys.col_ptr, None, &sys.row_idx);
+    let mut l = vec![0.0; sys.symbolic.len_val()];
+    let par = Par::Seq;
+    let mut buffer = MemBuffer::new(
+        sys.symbolic
+            .factorize_numeric_llt_scratch::<f64>(par, Default::default())
+            .or(sys.symbolic.solve_in_place_scratch::<f64>(1, par)),
+    );
+    let mut shifted = values.to_vec();
+    let mut tau = 0.0;
+    loop {
+        if tau > 0.0 {
+            shifted.copy_from_slice(values);
+            for c in 0..n {
+                // The diagonal is the first entry of each column.
+                shifted[sys.col_ptr[c]] *= 1.0 + tau;
+            }
+        }
+        let mat = SparseColMatRef::new(symbolic, &shifted);
+        let stack = MemStack::new(&mut buffer);
+        match sys.symbolic.factorize_numeric_llt(
+            &mut l,
+            mat,
+            Side::Lower,
+            Default::default(),
+            par,
+            stack,
+            Default::default(),
+        ) {
+            Ok(llt) => {
+                let rhs_mat = MatMut::from_column_major_slice_mut(rhs, n, 1);
+                llt.solve_in_place_with_conj(Conj::No, rhs_mat, par, MemStack::new(&mut buffer));
+                return;
+            }
+            Err(_) => {
+                tau = if tau == 0.0 { 1e-8 } else { tau * 10.0 };
+            }
+        }
+    }
+}
+
+impl ContactSolver for Fem {
+    fn name(&self) -> &'static str {
+        "fem"
+    }
+
+    fn solve(&mut self, input: &ContactInput) -> Result<Fields, ContactError> {
+        self.stats = FemStats::default();
+        let h = self.gel.thickness_mm;
+        let heights = &input.gap.gap_mm;
+        let deepest = heights
+            .iter()
+            .filter(|g| g.is_finite())
+            .fold(f64::INFINITY, |m, &g| m.min(g));
+        match input.normal {
+            NormalControl::Approach => {
+                if -deepest >= h {
+                    return Err(ContactError::OutOfValidity {
+                        solver: "fem",
+                        reason: format!(
+                            "the indenter reaches {:.3} mm into a {h} mm gel: a press at or past the gel's thickness",
+                            -deepest
+                        ),
+                    });
+                }
+                let approach = 0.0;
+                let fields = self.solve_at(input, approach)?;
+                Ok(fields)
+            }
+            NormalControl::Force(target_n) => self.solve_load(input, target_n, deepest),
+        }
+    }
+
+    fn reset(&mut self) {
+        self.state = None;
+    }
+}
+
+impl Fem {
+    /// Load control: the extra approach whose normal force is within 0.1 % of `target_n` (the
+    /// accuracy of the multiplier iteration), by regula falsi with the Illinois modification,
+    /// bracketed from first touch (zero force); every trial starts from the previous frame's
+    /// path history and warm-starts from the last trial.
+    fn solve_load(
+        &mut self,
+        input: &ContactInput,
+        target_n: f64,
+        deepest: f64,
+    ) -> Result<Fields, ContactError> {
+        let h = self.gel.thickness_mm;
+        // The extra approach at which the indenter's lowest point reaches the surface.
+        let touch = deepest;
+        if target_n <= 0.0 {
+            return self.solve_at(input, touch - 1e-3 * h);
+        }
+        let history = self.state.as_ref().map(State::history);
+        let mut guess = self
+            .state
+            .as_ref()
+            .map_or(touch + 1e-3 * h, |s| s.offset_mm)
+            .max(touch + 1e-3 * h);
+        let mut lo = (touch, -target_n);
+        let mut hi: Option<(f64, f64)> = None;
+        let mut last_side = 0i8;
+        let mut total = FemStats::default();
+        const TRIALS: usize = 60;
+        for _ in 0..TRIALS {
+            if guess - touch >= h {
+                return Err(ContactError::OutOfValidity {
+                    solver: "fem",
+                    reason: format!(
+                        "a normal load of {target_n} N presses the indenter through the {h} mm gel"
+                    ),
+                });
+            }
+            if let (Some(s), Some(saved)) = (self.state.as_mut(), history.as_ref()) {
+                s.restore_history(saved);
+            }
+            let fields = self.solve_at(input, guess)?;
+            total.newton_iterations += self.stats.newton_iterations;
+            total.updates += self.stats.updates;
+            total.remeshes += self.stats.remeshes;
+            let force = fields.force_n[2];
+            let f = force - target_n;
+            let width = hi.map_or(f64::INFINITY, |(x, _)| x - lo.0);
+            if width <= 1e-12 * h {
+                // The bracket closed on a jump of the force: no approach gives the load.
+                return Err(ContactError::NotConverged {
+                    solver: "fem",
+                    iterations: total.newton_iterations,
+                    residual: f.abs(),
+                });
+            }
+            if f.abs() <= 1e-3 * target_n {
+                self.stats = FemStats {
+                    dofs: self.stats.dofs,
+                    elements: self.stats.elements,
+                    ..total
+                };
+                if let Some(s) = self.state.as_mut() {
+                    s.offset_mm = guess;
+                }
+                return Ok(fields);
+            }
+            if f < 0.0 {
+                lo = (guess, f);
+                if last_side == -1 {
+                    if let Some(h) = hi.as_mut() {
+                        h.1 *= 0.5;
+                    }
+                }
+                last_side = -1;
+            } else {
+                hi = Some((guess, f));
+                if last_side == 1 {
+                    lo.1 *= 0.5;
+                }
+                last_side = 1;
+            }
+            guess = match hi {
+                // Expand as F ∝ d^{3/2} from first touch until the load is passed.
+                None => {
+                    let d = (guess - touch).max(1e-6 * h);
+                    let scale = if force > 0.0 {
+                        (target_n / force).powf(2.0 / 3.0).clamp(1.05, 4.0)
+                    } else {
+                        4.0
+                    };
+                    touch + d * scale
+                }
+                Some((xh, fh)) => lo.0 - lo.1 * (xh - lo.0) / (fh - lo.1),
+            };
+        }
+        Err(ContactError::NotConverged {
+            solver: "fem",
+            iterations: TRIALS,
+            residual: f64::NAN,
+        })
+    }
+
+    /// Displacement control with the indenter lowered by `approach_mm`.
+    fn solve_at(&mut self, input: &ContactInput, approach_mm: f64) -> Result<Fields, ContactError> {
+        let grid = self.grid;
+        let ind = Indenter {
+            grid,
+            height_mm: &input.gap.gap_mm,
+            approach_mm,
+            shift_mm: input.rigid_shift_mm,
+        };
+        // The penetrating cells: the fine zone and the mesh resolution follow them.
+        let mut bbox = [
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+        ];
+        let mut count = 0usize;
+        for j in 0..grid.ny {
+            for i in 0..grid.nx {
+                let g = input.gap.gap_mm[j * grid.nx + i];
+                if g.is_finite() && g - approach_mm < 0.0 {
+                    let (x, y) = (grid.x_mm(i), grid.y_mm(j));
+                    bbox = [
+                        bbox[0].min(x),
+                        bbox[1].max(x),
+                        bbox[2].min(y),
+                        bbox[3].max(y),
+                    ];
+                    count += 1;
+                }
+            }
+        }
+        if count == 0 {
+            // Nothing touches: the gel is at rest and forgets its friction history.
+            self.state = None;
+            return Ok(Fields::zero(grid));
+        }
+        let half = grid.cell_mm / 2.0;
+        let bbox = [
+            bbox[0] - half,
+            bbox[1] + half,
+            bbox[2] - half,
+            bbox[3] + half,
+        ];
+        let radius = (count as f64 * grid.cell_area_mm2() / std::f64::consts::PI)
+            .sqrt()
+            .max(grid.cell_mm);
+        let h = self.gel.thickness_mm;
+        if h > THICK_BLOCK * radius && radius >= 2.0 * grid.cell_mm {
+            return Err(ContactError::OutOfValidity {
+                solver: "fem",
+                reason: format!(
+                    "a {h} mm gel is {:.0} contact radii thick, beyond the {THICK_BLOCK} the fem rung \
+                     meshes: a thick block is the half-space rung's regime",
+                    h / radius
+                ),
+            });
+        }
+        let target_fine = self.fine_mm(radius);
+        let fits = |s: &State| {
+            let z = s.mesh.fine_zone;
+            bbox[0] >= z[0]
+                && bbox[1] <= z[1]
+                && bbox[2] >= z[2]
+                && bbox[3] <= z[3]
+                && s.mesh.fine_mm <= 1.25 * target_fine
+                && s.mesh.fine_mm >= target_fine / 2.5
+        };
+        let from_rest = self.state.is_none() || !self.options.warm_start;
+        let mut state = match self.state.take() {
+            Some(s) if fits(&s) => s,
+            old => {
+                self.stats.remeshes += 1;
+                let mesh = self.build_mesh(bbox, radius);
+                self.new_state(mesh, old.as_ref())
+            }
+        };
+        if !self.options.warm_start {
+            state.u.iter_mut().for_each(|u| *u = 0.0);
+            state.lambda.iter_mut().for_each(|l| *l = 0.0);
+        }
+        self.stats.dofs = state.mesh.free_dofs();
+        self.stats.elements = state.mesh.elements();
+        // From rest, a deep press is reached in increments of at most a fifth of the gel.
+        let depth = approach_mm - deepest_gap(input);
+        let steps = if from_rest {
+            ((depth / (0.2 * h)).ceil() as usize).max(1)
+        } else {
+            1
+        };
+        let attempt = if steps > 1 {
+            self.ramp(&mut state, input, approach_mm, steps)
+        } else {
+            self.solve_fixed(&mut state, &ind)
+        };
+        let attempt = match attempt {
+            // Too large a step from the warm start: ramp from rest in twice the increments.
+            Err(_) => self.ramp(&mut state, input, approach_mm, 2 * steps.max(4)),
+            ok => ok,
+        };
+        match attempt {
+            Ok(()) => {}
+            Err(Failure::Inverted) => {
+                return Err(ContactError::OutOfValidity {
+                    solver: "fem",
+                    reason:
+                        "an element inverted (J ≤ 0): the press is beyond what the mesh resolves"
+                            .into(),
+                });
+            }
+            Err(Failure::NotConverged {
+                iterations,
+                residual,
+            }) => {
+                return Err(ContactError::NotConverged {
+                    solver: "fem",
+                    iterations,
+                    residual,
+                });
+            }
+        }
+        let fields = self.fields(&mut state, &ind, approach_mm);
+        self.state = Some(state);
+        Ok(fields)
+    }
+
+    /// Solves from rest in `steps` increments of the approach (the indenter lowered from where
+    /// it first touches); the friction history is kept.
+    fn ramp(
+        &mut self,
+        state: &mut State,
+        input: &ContactInput,
+        approach_mm: f64,
+        steps: usize,
+    ) -> Result<(), Failure> {
+        let depth = approach_mm - deepest_gap(input);
+        state.u.iter_mut().for_each(|u| *u = 0.0);
+        state.lambda.iter_mut().for_each(|l| *l = 0.0);
+        for k in 1..=steps {
+            let ind = Indenter {
+                grid: self.grid,
+                height_mm: &input.gap.gap_mm,
+                approach_mm: approach_mm - depth * (1.0 - k as f64 / steps as f64),
+                shift_mm: input.rigid_shift_mm,
+            };
+            self.solve_fixed(state, &ind)?;
+        }
+        Ok(())
+    }
+
+    /// The converged state as fields on the grid; records the path history for the next frame.
+    fn fields(&self, st: &mut State, ind: &Indenter, approach_mm: f64) -> Fields {
+        let grid = self.grid;
+        let mesh = &st.mesh;
+        let nx = mesh.x.len();
+        let eps = self.penalty(mesh);
+        let surface = mesh.x.len() * mesh.y.len();
+        let mut pressure = vec![0.0; surface];
+        let mut traction = vec![[0.0; 2]; surface];
+        let mut slip = vec![false; surface];
+        let mut force = [0.0; 3];
+        for n in 0..surface {
+            let (i, j) = (n % nx, n / nx);
+            let area = mesh.surface_area_mm2(i, j);
+            let t = contact_terms(
+                st,
+                n,
+                area,
+                eps,
+                &st.u[3 * n..3 * n + 3],
+                [mesh.x[i], mesh.y[j]],
+                ind,
+            );
+            pressure[n] = t.pressure;
+            traction[n] = t.traction;
+            slip[n] = t.slip && t.pressure > 0.0;
+            force[0] += area * t.traction[0] * 1e-3;
+            force[1] += area * t.traction[1] * 1e-3;
+            force[2] += area * t.pressure * 1e-3;
+        }
+        let mut f = Fields::zero(grid);
+        for j in 0..grid.ny {
+            for i in 0..grid.nx {
+                let k = j * grid.nx + i;
+                let (x, y) = (grid.x_mm(i), grid.y_mm(j));
+                // The material point above this cell after deformation: X + u(X) = x.
+                let mut xy = [x, y];
+                for _ in 0..4 {
+                    let mut u = [0.0; 2];
+                    for (n, w) in st.surface_weights(xy[0], xy[1]) {
+                        u[0] += w * st.u[3 * n];
+                        u[1] += w * st.u[3 * n + 1];
+                    }
+                    xy = [x - u[0], y - u[1]];
+                }
+                let weights = st.surface_weights(xy[0], xy[1]);
+                let nearest = weights
+                    .iter()
+                    .fold(
+                        (0, -1.0),
+                        |best, &(n, w)| if w > best.1 { (n, w) } else { best },
+                    )
+                    .0;
+                let mut u = [0.0; 3];
+                let (mut p, mut q) = (0.0, [0.0; 2]);
+                for &(n, w) in &weights {
+                    for c in 0..3 {
+                        u[c] += w * st.u[3 * n + c];
+                    }
+                    p += w * pressure[n];
+                    q[0] += w * traction[n][0];
+                    q[1] += w * traction[n][1];
+                }
+                f.ux_mm[k] = u[0];
+                f.uy_mm[k] = u[1];
+                f.uz_mm[k] = u[2];
+                if pressure[nearest] > 0.0 {
+                    f.contact[k] = true;
+                    f.slip[k] = slip[nearest];
+                    f.pressure_kpa[k] = p;
+                    f.traction_x_kpa[k] = q[0];
+                    f.traction_y_kpa[k] = q[1];
+                }
+            }
+        }
+        f.force_n = force;
+        f.approach_offset_mm = approach_mm;
+        // Path history for the next frame: this frame's friction tractions (gel on indenter) and
+        // tangential displacements.
+        for n in 0..surface {
+            st.q_prev[n] = [-traction[n][0], -traction[n][1]];
+            st.ut_prev[n] = [st.u[3 * n], st.u[3 * n + 1]];
+        }
+        f
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::Bem;
+    use sparsh_scene::GapField;
+
+    fn sphere_gap(grid: Grid, radius: f64, depth: f64) -> GapField {
+        let gap_mm = (0..grid.len())
+            .map(|k| {
+                let (x, y) = (grid.x_mm(k % grid.nx), grid.y_mm(k / grid.nx));
+                let r2 = x * x + y * y;
+                if r2 < radius * radius {
+                    radius - (radius * radius - r2).sqrt() - depth
+                } else {
+                    f64::INFINITY
+                }
+            })
+            .collect();
+        GapField { grid, gap_mm }
+    }
+
+    fn press(solver: &mut dyn ContactSolver, gap: &GapField) -> Fields {
+        let shift = vec![[0.0; 2]; gap.grid.len()];
+        solver
+            .solve(&ContactInput {
+                gap,
+                normal: NormalControl::Approach,
+                rigid_shift_mm: &shift,
+            })
+            .unwrap()
+    }
+
+    fn layer(thickness_mm: f64, friction: f64) -> Gel {
+        Gel {
+            youngs_modulus_kpa: 300.0,
+            poisson_ratio: 0.5,
+            thickness_mm,
+            friction,
+        }
+    }
+
+    /// A 100 mm sphere 0.01 mm deep (contact radius ≈ 1 mm) on a grid of 0.05 mm cells.
+    fn shallow() -> (Grid, GapField) {
+        let grid = Grid {
+            nx: 81,
+            ny: 81,
+            cell_mm: 0.05,
+        };
+        (grid, sphere_gap(grid, 100.0, 0.01))
+    }
+
+    #[test]
+    fn small_strain_matches_the_layered_rung_on_a_thin_layer() {
+        // χ = √(Rδ)/h = 1: the two methods share nothing but the elasticity of the layer.
+        let (grid, gap) = shallow();
+        let gel = layer(1.0, 0.0);
+        let fem = press(&mut Fem::new(gel, grid), &gap);
+        let bem = press(&mut Bem::layered(gel, grid), &gap);
+        let rel = fem.force_n[2] / bem.force_n[2] - 1.0;
+        assert!(rel.abs() < 0.02, "{rel}");
+        // Axisymmetry: no net shear, and the deflection peaks on the axis.
+        assert!(fem.force_n[0].abs() < 1e-6 * fem.force_n[2]);
+        let centre = (grid.ny / 2) * grid.nx + grid.nx / 2;
+        let min = fem.uz_mm.iter().copied().fold(f64::INFINITY, f64::min);
+        assert!(fem.uz_mm[centre] <= min + 1e-12);
+        assert!((fem.uz_mm[centre] + 0.01).abs() < 1e-4, "{}", fem.uz_mm[centre]);
+    }
+
+    #[test]
+    fn a_press_through_the_gel_is_refused() {
+        let grid = Grid {
+            nx: 41,
+            ny: 41,
+            cell_mm: 0.2,
+        };
+        let gap = sphere_gap(grid, 5.0, 2.5);
+        let shift = vec![[0.0; 2]; grid.len()];
+        let err = Fem::new(layer(2.0, 1.0), grid)
+            .solve(&ContactInput {
+                gap: &gap,
+                normal: NormalControl::Approach,
+                rigid_shift_mm: &shift,
+            })
+            .unwrap_err();
+        assert!(matches!(err, ContactError::OutOfValidity { solver: "fem", .. }));
+        assert!(err.to_string().contains("2.500 mm into a 2 mm gel"), "{err}");
+    }
+
+    #[test]
+    fn an_iteration_cap_is_a_typed_error_with_its_residual() {
+        let (grid, gap) = shallow();
+        let options = FemOptions {
+            max_newton: 1,
+            ..FemOptions::default()
+        };
+        let shift = vec![[0.0; 2]; grid.len()];
+        let err = Fem::new(layer(1.0, 0.0), grid)
+            .with_options(options)
+            .solve(&ContactInput {
+                gap: &gap,
+                normal: NormalControl::Approach,
+                rigid_shift_mm: &shift,
+            })
+            .unwrap_err();
+        match err {
+            ContactError::NotConverged {
+                solver: "fem",
+                residual,
+                ..
+            } => assert!(residual.is_finite() && residual > 0.0),
+            other => panic!("{other}"),
+        }
+    }
+
+    #[test]
+    fn load_control_finds_the_load() {
+        let (grid, gap) = shallow();
+        let shift = vec![[0.0; 2]; grid.len()];
+        let mut fem = Fem::new(layer(1.0, 0.5), grid);
+        // Lift the sphere 0.005 mm off its 0.01 mm press and ask for a load instead.
+        let lifted = GapField {
+            grid,
+            gap_mm: gap.gap_mm.iter().map(|g| g + 0.005).collect(),
+        };
+        let f = fem
+            .solve(&ContactInput {
+                gap: &lifted,
+                normal: NormalControl::Force(0.02),
+                rigid_shift_mm: &shift,
+            })
+            .unwrap();
+        assert!((f.force_n[2] - 0.02).abs() < 2e-5, "{:?}", f.force_n);
+        assert!(f.approach_offset_mm > 0.0);
+    }
+
+    #[test]
+    fn sliding_far_enough_slips_at_the_friction_bound() {
+        // Coulomb: once every contact node slips, Q = μP.
+        let (grid, gap) = shallow();
+        let gel = layer(1.0, 0.4);
+        let mut fem = Fem::new(gel, grid);
+        let still = vec![[0.0; 2]; grid.len()];
+        press(&mut fem, &gap);
+        let step = vec![[0.01, 0.0]; grid.len()];
+        let mut last = None;
+        for _ in 0..4 {
+            last = Some(
+                fem.solve(&ContactInput {
+                    gap: &gap,
+                    normal: NormalControl::Approach,
+                    rigid_shift_mm: &step,
+                })
+                .unwrap(),
+            );
+        }
+        let f = last.unwrap();
+        assert_eq!(f.slip_state(), crate::SlipState::Gross);
+        let ratio = f.force_n[0] / (gel.friction * f.force_n[2]);
+        assert!((ratio - 1.0).abs() < 0.01, "{ratio}");
+        // Standing still afterwards: the tractions stay (stick), the history is kept.
+        let g = fem
+            .solve(&ContactInput {
+                gap: &gap,
+                normal: NormalControl::Approach,
+                rigid_shift_mm: &still,
+            })
+            .unwrap();
+        assert!((g.force_n[0] - f.force_n[0]).abs() < 0.02 * f.force_n[0].abs());
+    }
+
+    #[test]
+    fn the_thread_count_does_not_change_a_bit() {
+        let (grid, gap) = shallow();
+        let solve = |threads| {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            pool.install(|| press(&mut Fem::new(layer(1.0, 0.5), grid), &gap))
+        };
+        assert_eq!(solve(1), solve(2));
+    }
+}
