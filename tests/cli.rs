@@ -5,6 +5,9 @@ use std::process::{Command, Output};
 
 use sha2::{Digest, Sha256};
 
+mod common;
+use common::{assert_user_error, generate, sparsh, stderr, write_scene};
+
 const SMALL_SCENE: &str = r#"
 seed = 11
 solver = "geometric"
@@ -30,46 +33,6 @@ position_mm = [-1.0, 0.0, -0.8]
 time_s = 1.2
 position_mm = [1.0, 0.0, -0.8]
 "#;
-
-fn sparsh(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_sparsh"))
-        .args(args)
-        .output()
-        .expect("sparsh runs")
-}
-
-fn write_scene(dir: &Path, text: &str) -> PathBuf {
-    let path = dir.join("scene.toml");
-    std::fs::write(&path, text).unwrap();
-    path
-}
-
-fn stderr(out: &Output) -> String {
-    String::from_utf8_lossy(&out.stderr).into_owned()
-}
-
-/// A user error: non-zero exit, one line on stderr that says what is wrong, no panic.
-fn assert_user_error(out: &Output, needle: &str) {
-    let err = stderr(out);
-    assert!(!out.status.success(), "should fail: {err}");
-    assert!(
-        !err.contains("panicked") && !err.contains("RUST_BACKTRACE"),
-        "{err}"
-    );
-    assert_eq!(err.trim_end().lines().count(), 1, "one line: {err}");
-    assert!(err.contains(needle), "expected `{needle}` in: {err}");
-}
-
-fn generate(scene: &Path, out: &Path, extra: &[&str]) -> Output {
-    let mut args = vec![
-        "generate",
-        scene.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-    ];
-    args.extend_from_slice(extra);
-    sparsh(&args)
-}
 
 fn files_under(dir: &Path) -> Vec<PathBuf> {
     let mut files = Vec::new();

@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
 mod common;
-use common::{RECIPE, assert_user_error, sparsh, stderr};
+use common::{RECIPE, assert_user_error, generate, sparsh, stderr, write_scene};
 
 /// Six short sequences (two per shard of three) with a pressure field, on a small sensor.
 const SCENE: &str = r#"
@@ -35,23 +35,6 @@ split = "test"
 kind = "press_slide"
 depth_mm = [0.3, 0.8]
 "#;
-
-fn write_scene(dir: &Path, text: &str) -> PathBuf {
-    let path = dir.join("scene.toml");
-    std::fs::write(&path, text).unwrap();
-    path
-}
-
-fn generate(scene: &Path, out: &Path, extra: &[&str]) -> Output {
-    let mut args = vec![
-        "generate",
-        scene.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-    ];
-    args.extend_from_slice(extra);
-    sparsh(&args)
-}
 
 fn stdout(out: &Output) -> String {
     String::from_utf8_lossy(&out.stdout).into_owned()

@@ -1,6 +1,7 @@
-//! What the end-to-end tests of learned commands share: running the built `sparsh`, reading its
-//! errors, and a small ViT recipe.
+//! What the end-to-end tests share: running the built `sparsh`, reading its errors, writing a
+//! scene and generating a dataset from it, and a small ViT recipe.
 
+use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
 /// A ViT of two blocks on the CPU recipes' input.
@@ -34,7 +35,31 @@ pub fn stderr(out: &Output) -> String {
 pub fn assert_user_error(out: &Output, needle: &str) {
     let err = stderr(out);
     assert!(!out.status.success(), "should fail: {err}");
-    assert!(!err.contains("panicked"), "{err}");
+    assert!(
+        !err.contains("panicked") && !err.contains("RUST_BACKTRACE"),
+        "{err}"
+    );
     assert_eq!(err.trim_end().lines().count(), 1, "one line: {err}");
     assert!(err.contains(needle), "expected `{needle}` in: {err}");
+}
+
+/// Writes `text` as `dir/scene.toml`.
+#[allow(dead_code)] // not every test crate writes scenes
+pub fn write_scene(dir: &Path, text: &str) -> PathBuf {
+    let path = dir.join("scene.toml");
+    std::fs::write(&path, text).unwrap();
+    path
+}
+
+/// `sparsh generate SCENE --out OUT EXTRA…`.
+#[allow(dead_code)] // not every test crate generates datasets
+pub fn generate(scene: &Path, out: &Path, extra: &[&str]) -> Output {
+    let mut args = vec![
+        "generate",
+        scene.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ];
+    args.extend_from_slice(extra);
+    sparsh(&args)
 }

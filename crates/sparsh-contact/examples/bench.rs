@@ -4,10 +4,17 @@
 //!
 //! `cargo run --release --example bench -- [halfspace|layered] [normal|slip]`, or
 //! `cargo run --release --example bench -- scene <scene.toml>` to time a scene's contact solves.
+//!
+//! `cargo run --release --example bench -- fem [frames]`: the finite-element rung's deep press, a
+//! sphere of 6 mm radius pressed 1 mm into a 3 mm DIGIT gel (E = 300 kPa, ν = 0.48, μ = 1) in
+//! `frames` equal steps (default 20), fields on the 320 × 240 grid: seconds and Newton iterations
+//! per frame with and without warm start, against the layered rung on the same frames.
 use std::time::Instant;
 
 use glam::DVec3;
-use sparsh_contact::{ContactInput, ContactSolver, Fem, NormalControl, rigid_shift_mm, solver_for};
+use sparsh_contact::{
+    ContactInput, ContactSolver, Fem, FemOptions, NormalControl, rigid_shift_mm, solver_for,
+};
 use sparsh_scene::{GapField, Gel, Grid, Indenter, IndenterSpec, Pose, ShapeKind, SolverKind};
 
 fn main() {
@@ -62,6 +69,11 @@ fn main() {
             frames.len(),
             rayon::current_num_threads()
         );
+        return;
+    }
+    if args.get(1).map(String::as_str) == Some("fem") {
+        let frames = args.get(2).map_or(20, |f| f.parse().expect("frames"));
+        deep_press(frames);
         return;
     }
     let kind = match args.get(1).map(String::as_str) {
@@ -141,4 +153,120 @@ fn main() {
         rayon::current_num_threads(),
         states
     );
+}
+
+/// The deep-press benchmark of the finite-element rung (see the module comment).
+fn deep_press(frames: usize) {
+    let grid = Grid {
+        nx: 320,
+        ny: 240,
+        cell_mm: 0.0532,
+    };
+    let gel = Gel {
+        youngs_modulus_kpa: 300.0,
+        poisson_ratio: 0.48,
+        thickness_mm: 3.0,
+        friction: 1.0,
+    };
+    let spec = IndenterSpec {
+        shape: ShapeKind::Sphere,
+        radius_mm: Some(6.0),
+        height_mm: None,
+        half_angle_deg: None,
+        size_mm: None,
+        pattern: None,
+        pitch_mm: None,
+        depth_mm: None,
+        crown_radius_mm: None,
+        mesh: None,
+        scale: None,
+        units: None,
+        anchor: None,
+    };
+    let indenter: Indenter = spec.build(std::path::Path::new(".")).expect("sphere");
+    let gaps: Vec<GapField> = (1..=frames)
+        .map(|k| {
+            let pose = Pose {
+                position_mm: DVec3::new(0.0, 0.0, -(k as f64) / frames as f64),
+                rotation_deg: DVec3::ZERO,
+            };
+            GapField::cast(&indenter, &pose, grid)
+        })
+        .collect();
+    let still = vec![[0.0; 2]; grid.len()];
+    let input = |gap| ContactInput {
+        gap,
+        normal: NormalControl::Approach,
+        rigid_shift_mm: &still,
+    };
+    // (label, seconds per frame, worst, Newton iterations per frame, final force)
+    let mut rows = Vec::new();
+    let mut layered = sparsh_contact::Bem::layered(gel, grid);
+    let (mean, worst, _, force) = time_frames(&gaps, |gap| {
+        (layered.solve(&input(gap)).expect("layered solve"), 0)
+    });
+    rows.push((
+        "layered (boundary elements)".to_string(),
+        mean,
+        worst,
+        0.0,
+        force,
+    ));
+    for warm in [true, false] {
+        let options = FemOptions {
+            warm_start: warm,
+            ..FemOptions::default()
+        };
+        let mut fem = Fem::new(gel, grid).with_options(options);
+        let label = if warm {
+            "fem, warm start"
+        } else {
+            "fem, from rest each frame"
+        };
+        let (mean, worst, its, force) = time_frames(&gaps, |gap| {
+            let fields = fem.solve(&input(gap)).expect("fem solve");
+            (fields, fem.stats().newton_iterations)
+        });
+        rows.push((label.to_string(), mean, worst, its, force));
+    }
+    let base = rows[0].1;
+    println!(
+        "deep press: R = 6 mm sphere, 1 mm into a 3 mm gel in {frames} frames, 320 × 240 grid, {} threads",
+        rayon::current_num_threads()
+    );
+    println!(
+        "| solver | s/frame (mean) | s/frame (worst) | Newton iterations/frame | × layered | force at 1 mm (N) |"
+    );
+    println!("|---|---|---|---|---|---|");
+    for (label, mean, worst, its, force) in rows {
+        let its = if its > 0.0 {
+            format!("{its:.1}")
+        } else {
+            "–".into()
+        };
+        println!(
+            "| {label} | {mean:.3} | {worst:.3} | {its} | {:.0} | {force:.3} |",
+            mean / base
+        );
+    }
+}
+
+/// Solves every frame in order: mean and worst seconds per frame, mean iterations per frame (as
+/// `solve` reports them) and the last frame's normal force.
+fn time_frames(
+    gaps: &[GapField],
+    mut solve: impl FnMut(&GapField) -> (sparsh_contact::Fields, usize),
+) -> (f64, f64, f64, f64) {
+    let (mut total, mut worst, mut iterations, mut force) = (0.0f64, 0.0f64, 0usize, 0.0);
+    for gap in gaps {
+        let start = Instant::now();
+        let (fields, its) = solve(gap);
+        let t = start.elapsed().as_secs_f64();
+        total += t;
+        worst = worst.max(t);
+        iterations += its;
+        force = fields.force_n[2];
+    }
+    let n = gaps.len() as f64;
+    (total / n, worst, iterations as f64 / n, force)
 }

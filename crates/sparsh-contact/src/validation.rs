@@ -268,33 +268,9 @@ pub fn run_case(path: &Path) -> Result<Report, ValidationError> {
             } else {
                 evaluate(&scene, &spec, grid).map_err(contact_err)?
             };
-            for v in values {
-                let study = match studies.iter_mut().find(|s| s.quantity == v.quantity) {
-                    Some(s) => s,
-                    None => {
-                        studies.push(Convergence {
-                            case: case.clone(),
-                            quantity: v.quantity.to_string(),
-                            cell_mm: Vec::new(),
-                            rel_error: Vec::new(),
-                            observed_order: Vec::new(),
-                        });
-                        studies.last_mut().expect("just pushed")
-                    }
-                };
-                study.cell_mm.push(grid.cell_mm);
-                study.rel_error.push(v.rel_error());
-            }
+            record(&mut studies, &case, grid.cell_mm, &values);
         }
-        for s in &mut studies {
-            s.observed_order = s
-                .rel_error
-                .windows(2)
-                .zip(s.cell_mm.windows(2))
-                .map(|(e, h)| (e[0].abs() / e[1].abs()).ln() / (h[0] / h[1]).ln())
-                .collect();
-        }
-        convergence = studies;
+        convergence = with_orders(studies);
     }
     if !spec.elements_per_radius.is_empty() {
         // The finite-element mesh refined at a fixed grid: the "cell" is the fine zone's element
@@ -313,35 +289,46 @@ pub fn run_case(path: &Path) -> Result<Report, ValidationError> {
             let values = evaluate_case_with(&scene, &case_spec, base, options)
                 .map_err(contact_err)?
                 .values;
-            for v in values {
-                let study = match studies.iter_mut().find(|s| s.quantity == v.quantity) {
-                    Some(s) => s,
-                    None => {
-                        studies.push(Convergence {
-                            case: format!("{case} (elements per radius)"),
-                            quantity: v.quantity.to_string(),
-                            cell_mm: Vec::new(),
-                            rel_error: Vec::new(),
-                            observed_order: Vec::new(),
-                        });
-                        studies.last_mut().expect("just pushed")
-                    }
-                };
-                study.cell_mm.push(1.0 / per_radius);
-                study.rel_error.push(v.rel_error());
-            }
+            let name = format!("{case} (elements per radius)");
+            record(&mut studies, &name, 1.0 / per_radius, &values);
         }
-        for s in &mut studies {
-            s.observed_order = s
-                .rel_error
-                .windows(2)
-                .zip(s.cell_mm.windows(2))
-                .map(|(e, h)| (e[0].abs() / e[1].abs()).ln() / (h[0] / h[1]).ln())
-                .collect();
-        }
-        convergence.extend(studies);
+        convergence.extend(with_orders(studies));
     }
     Ok(Report { rows, convergence })
+}
+
+/// Adds one refinement level's errors to the convergence studies of `case`, one per quantity.
+fn record(studies: &mut Vec<Convergence>, case: &str, size: f64, values: &[Value]) {
+    for v in values {
+        let index = match studies.iter().position(|s| s.quantity == v.quantity) {
+            Some(i) => i,
+            None => {
+                studies.push(Convergence {
+                    case: case.to_string(),
+                    quantity: v.quantity.to_string(),
+                    cell_mm: Vec::new(),
+                    rel_error: Vec::new(),
+                    observed_order: Vec::new(),
+                });
+                studies.len() - 1
+            }
+        };
+        studies[index].cell_mm.push(size);
+        studies[index].rel_error.push(v.rel_error());
+    }
+}
+
+/// The observed orders between consecutive levels, ln(e₁/e₂)/ln(h₁/h₂).
+fn with_orders(mut studies: Vec<Convergence>) -> Vec<Convergence> {
+    for s in &mut studies {
+        s.observed_order = s
+            .rel_error
+            .windows(2)
+            .zip(s.cell_mm.windows(2))
+            .map(|(e, h)| (e[0].abs() / e[1].abs()).ln() / (h[0] / h[1]).ln())
+            .collect();
+    }
+    studies
 }
 
 /// A compared quantity.

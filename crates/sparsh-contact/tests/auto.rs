@@ -100,6 +100,7 @@ fn auto_meets_its_tolerance_on_held_out_scenes_and_is_never_dearer() {
             &scene.sensor,
             &scene.gel,
             choice.contact_radius_mm,
+            choice.depth_over_h * scene.gel.thickness_mm,
             choice.tolerance,
         );
         let best = most_accurate(&all).expect("candidates");
@@ -128,4 +129,32 @@ fn auto_meets_its_tolerance_on_held_out_scenes_and_is_never_dearer() {
         // Never dearer than the most accurate fixed choice, counted in contact cells solved.
         assert!(cells(choice.mechanics_stride) <= cells(best.mechanics_stride));
     }
+}
+
+/// The quickstart's press (a 6 mm-radius sphere 1 mm into a 3 mm gel, δ/h = 0.33) under
+/// `solver = "auto"`: the boundary elements' studied depth error misses 2 % there, so the
+/// finite elements are taken, and a shallow press of the same scene stays on a cheaper rung.
+#[test]
+fn auto_takes_the_finite_elements_for_a_deep_press() {
+    let quickstart = std::fs::read_to_string(
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../scenes/quickstart.toml"),
+    )
+    .expect("quickstart scene");
+    let auto = quickstart
+        .replace("solver = \"halfspace\"", "solver = \"auto\"")
+        .replace("mechanics_stride = 2\n", "");
+    let scene = Scene::parse(Path::new("quickstart.toml"), auto.clone()).expect("scene");
+    let choice = scene.auto.expect("auto records its choice");
+    assert_eq!(scene.solver, sparsh_scene::SolverKind::Fem, "{choice:?}");
+    assert!((choice.depth_over_h - 1.0 / 3.0).abs() < 0.02, "{choice:?}");
+    let shallow = auto
+        .replace("[-1.0, 0.0, -1.0]", "[-1.0, 0.0, -0.1]")
+        .replace("[1.0, 0.0, -1.0]", "[1.0, 0.0, -0.1]");
+    let scene = Scene::parse(Path::new("shallow.toml"), shallow).expect("scene");
+    assert_ne!(
+        scene.solver,
+        sparsh_scene::SolverKind::Fem,
+        "{:?}",
+        scene.auto
+    );
 }

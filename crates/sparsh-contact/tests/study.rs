@@ -116,10 +116,49 @@ fn quick_study_is_complete_and_physical() {
     // but a/h = 0.3, kept out for the auto test).
     for rung in SolverKind::ALL {
         assert_eq!(
-            study.table.rows.iter().filter(|r| r.rung == rung).count(),
+            study
+                .table
+                .rows
+                .iter()
+                .filter(|r| r.rung == rung && r.depth_over_h == 0.0)
+                .count(),
             options.contact_cells.len() * 6
         );
+        // and one row per swept depth, from the stability map's depth sweep
+        assert_eq!(
+            study
+                .table
+                .rows
+                .iter()
+                .filter(|r| r.rung == rung && r.depth_over_h > 0.0)
+                .count(),
+            options.depth_over_thickness.len()
+        );
     }
+    // At depth the finite elements are the reference of the sweep and meet it; the boundary
+    // elements' small-strain layer drifts off it as δ/h grows.
+    let depth = |rung, label: &str| {
+        study
+            .stability
+            .iter()
+            .find(|p| p.sweep == "depth_over_thickness" && p.label == label && p.rung == rung)
+            .expect("depth point")
+    };
+    assert_eq!(
+        depth(SolverKind::Fem, "δ/h 0.4").measurement.outcome,
+        Outcome::Ok
+    );
+    assert_eq!(
+        depth(SolverKind::Fem, "δ/h 1.2").measurement.outcome,
+        Outcome::OutOfValidity
+    );
+    let layered = |label| {
+        depth(SolverKind::Layered, label)
+            .measurement
+            .rel_error
+            .expect("error")
+    };
+    assert!(layered("δ/h 0.4").abs() > layered("δ/h 0.05").abs());
     let text = study.table.to_csv();
     assert_eq!(
         sparsh_scene::auto::SolverTable::parse(&text).expect("round trip"),

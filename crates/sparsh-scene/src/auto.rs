@@ -147,8 +147,9 @@ impl SolverTable {
 
 impl SolverTable {
     /// The error of `rung` at indentation depth over gel thickness `depth_over_h`, from the depth
-    /// sweep on the hard side: the error at the shallowest swept depth at or past the query (∞
-    /// past the deepest swept depth; 0 when the table has no depth rows for the rung).
+    /// sweep on the hard side: the worst error of the swept depths up to the shallowest one at or
+    /// past the query (so a rung that once missed does not come back deeper; ∞ past the deepest
+    /// swept depth; 0 when the table has no depth rows for the rung).
     pub fn depth_error(&self, rung: SolverKind, depth_over_h: f64) -> f64 {
         let rows: Vec<&TableRow> = self
             .rows
@@ -158,10 +159,17 @@ impl SolverTable {
         if rows.is_empty() {
             return 0.0;
         }
+        let Some(bound) = rows
+            .iter()
+            .map(|r| r.depth_over_h)
+            .filter(|&d| d >= depth_over_h * (1.0 - 1e-9))
+            .reduce(f64::min)
+        else {
+            return f64::INFINITY;
+        };
         rows.iter()
-            .filter(|r| r.depth_over_h >= depth_over_h * (1.0 - 1e-9))
-            .min_by(|a, b| a.depth_over_h.total_cmp(&b.depth_over_h))
-            .map_or(f64::INFINITY, |r| r.rel_error)
+            .filter(|r| r.depth_over_h <= bound)
+            .fold(0.0, |worst, r| worst.max(r.rel_error))
     }
 }
 

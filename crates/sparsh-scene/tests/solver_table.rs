@@ -4,41 +4,53 @@
 use sparsh_scene::SolverKind;
 use sparsh_scene::auto::{AutoChoice, SolverTable, choose, most_accurate};
 
-const TABLE: &str = "# hand-written
-rung,a_over_cell,a_over_h,rel_error,ms_per_frame
-halfspace,5,0.002,0.03,1
-halfspace,10,0.002,0.01,4
-halfspace,10,0.5,0.4,4
-layered,5,0.002,0.03,2
-layered,5,0.5,0.05,2
-layered,10,0.002,0.01,8
-layered,10,0.5,0.012,8
-geometric,5,0.002,inf,0.1
+const TABLE: &str = "rung,a_over_cell,a_over_h,depth_over_h,rel_error,ms_per_frame
+halfspace,5,0.002,0,0.03,1
+halfspace,10,0.002,0,0.01,4
+halfspace,10,0.5,0,0.4,4
+layered,5,0.002,0,0.03,2
+layered,5,0.5,0,0.05,2
+layered,10,0.002,0,0.01,8
+layered,10,0.5,0,0.012,8
+geometric,5,0.002,0,inf,0.1
+layered,3,0.5,0.1,0.01,8
+layered,3,0.8,0.3,0.035,8
+layered,3,0.9,0.4,0.001,8
+fem,10,0.5,0,0.008,2000
+fem,3,0.8,0.3,0.004,2000
 ";
 
 #[test]
 fn table_parses_and_round_trips() {
     let table = SolverTable::parse(TABLE).unwrap();
-    assert_eq!(table.rows.len(), 8);
+    assert_eq!(table.rows.len(), 13);
     assert!(table.rows[7].rel_error.is_infinite());
     assert_eq!(SolverTable::parse(&table.to_csv()).unwrap(), table);
     for (bad, why) in [
         ("rung,a\n", "first row"),
         (
-            "rung,a_over_cell,a_over_h,rel_error,ms_per_frame\nfem,1,1,1,1\n",
+            "rung,a_over_cell,a_over_h,rel_error,ms_per_frame\nlayered,1,1,1,1\n",
+            "first row",
+        ),
+        (
+            "rung,a_over_cell,a_over_h,depth_over_h,rel_error,ms_per_frame\nbogus,1,1,0,1,1\n",
             "unknown solver",
         ),
         (
-            "rung,a_over_cell,a_over_h,rel_error,ms_per_frame\nlayered,1,1,x,1\n",
+            "rung,a_over_cell,a_over_h,depth_over_h,rel_error,ms_per_frame\nlayered,1,1,0,x,1\n",
             "not a number",
         ),
         (
-            "rung,a_over_cell,a_over_h,rel_error,ms_per_frame\nlayered,0,1,1,1\n",
+            "rung,a_over_cell,a_over_h,depth_over_h,rel_error,ms_per_frame\nlayered,0,1,0,1,1\n",
             "must be > 0",
         ),
         (
-            "rung,a_over_cell,a_over_h,rel_error,ms_per_frame\nlayered,1,1\n",
-            "5 fields",
+            "rung,a_over_cell,a_over_h,depth_over_h,rel_error,ms_per_frame\nlayered,1,1,-1,1,1\n",
+            "depth_over_h",
+        ),
+        (
+            "rung,a_over_cell,a_over_h,depth_over_h,rel_error,ms_per_frame\nlayered,1,1\n",
+            "6 fields",
         ),
     ] {
         let err = SolverTable::parse(bad).unwrap_err();
@@ -71,6 +83,7 @@ fn choice(solver: SolverKind, stride: usize, error: f64, ms: f64) -> AutoChoice 
         tolerance: 0.02,
         contact_radius_mm: 1.0,
         a_over_h: 0.1,
+        depth_over_h: 0.01,
         predicted_rel_error: error,
         predicted_ms_per_frame: ms,
     }
@@ -104,7 +117,7 @@ fn choice_is_the_cheapest_that_meets_the_tolerance() {
 }
 
 /// The shipped table and what the study writes are plain CSV: the `csv` crate's default reader
-/// takes the header from the first line and every row has the header's five fields.
+/// takes the header from the first line and every row has the header's six fields.
 #[test]
 fn tables_read_with_default_csv_readers() {
     let written = SolverTable::parse(TABLE).unwrap().to_csv();
@@ -117,6 +130,7 @@ fn tables_read_with_default_csv_readers() {
                 "rung",
                 "a_over_cell",
                 "a_over_h",
+                "depth_over_h",
                 "rel_error",
                 "ms_per_frame"
             ]
@@ -124,8 +138,36 @@ fn tables_read_with_default_csv_readers() {
         let rows: Vec<csv::StringRecord> = reader.records().map(|r| r.unwrap()).collect();
         assert!(!rows.is_empty());
         for r in &rows {
-            assert_eq!(r.len(), 5, "{r:?}");
+            assert_eq!(r.len(), 6, "{r:?}");
             r[1].parse::<f64>().unwrap();
         }
     }
+}
+
+#[test]
+fn a_deep_press_takes_the_finite_elements() {
+    // The depth sweep's rows bound each rung's error by the depth over thickness: a layered rung
+    // good to 1 % at δ/h = 0.1 misses 2 % at 0.3, where only the finite elements hold.
+    let table = SolverTable::parse(TABLE).unwrap();
+    assert_eq!(table.depth_error(SolverKind::Layered, 0.05), 0.01);
+    assert_eq!(table.depth_error(SolverKind::Layered, 0.2), 0.035);
+    // a rung that missed at 0.3 is not trusted again at 0.4, where it happens to land close
+    assert_eq!(table.depth_error(SolverKind::Layered, 0.35), 0.035);
+    assert!(table.depth_error(SolverKind::Layered, 0.5).is_infinite());
+    assert_eq!(table.depth_error(SolverKind::Halfspace, 0.5), 0.0);
+    let mut sensor = sparsh_scene::SensorConfig::preset("digit").unwrap();
+    (sensor.width_px, sensor.height_px, sensor.mm_per_px) = (100, 100, 0.1);
+    let gel = sparsh_scene::Gel {
+        thickness_mm: 2.0,
+        ..sparsh_scene::Gel::default()
+    };
+    let pick = |depth_mm: f64| {
+        let all = sparsh_scene::auto::candidates(&table, &sensor, &gel, 1.0, depth_mm, 0.02);
+        choose(&all).unwrap()
+    };
+    let shallow = pick(0.1);
+    assert_eq!(shallow.solver, SolverKind::Layered);
+    let deep = pick(0.5);
+    assert_eq!(deep.solver, SolverKind::Fem, "{deep:?}");
+    assert!(deep.meets_tolerance() && deep.depth_over_h == 0.25);
 }

@@ -1311,7 +1311,11 @@ mod tests {
         let centre = (grid.ny / 2) * grid.nx + grid.nx / 2;
         let min = fem.uz_mm.iter().copied().fold(f64::INFINITY, f64::min);
         assert!(fem.uz_mm[centre] <= min + 1e-12);
-        assert!((fem.uz_mm[centre] + 0.01).abs() < 1e-4, "{}", fem.uz_mm[centre]);
+        assert!(
+            (fem.uz_mm[centre] + 0.01).abs() < 1e-4,
+            "{}",
+            fem.uz_mm[centre]
+        );
     }
 
     #[test]
@@ -1330,8 +1334,14 @@ mod tests {
                 rigid_shift_mm: &shift,
             })
             .unwrap_err();
-        assert!(matches!(err, ContactError::OutOfValidity { solver: "fem", .. }));
-        assert!(err.to_string().contains("2.500 mm into a 2 mm gel"), "{err}");
+        assert!(matches!(
+            err,
+            ContactError::OutOfValidity { solver: "fem", .. }
+        ));
+        assert!(
+            err.to_string().contains("2.500 mm into a 2 mm gel"),
+            "{err}"
+        );
     }
 
     #[test]
