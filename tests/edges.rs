@@ -3,7 +3,7 @@
 //! one line on success, and shipped defaults and error text independent of the working
 //! directory.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::{Command, Output};
 
 mod common;

@@ -5,6 +5,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
 /// A ViT of two blocks on the CPU recipes' input.
+#[allow(dead_code)] // the learned commands' tests only
 pub const RECIPE: &str = r#"
 objective = "mae"
 seed = 0

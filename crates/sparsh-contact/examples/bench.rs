@@ -194,16 +194,14 @@ fn deep_press(frames: usize) {
         })
         .collect();
     let still = vec![[0.0; 2]; grid.len()];
-    let input = |gap| ContactInput {
-        gap,
-        normal: NormalControl::Approach,
-        rigid_shift_mm: &still,
-    };
     // (label, seconds per frame, worst, Newton iterations per frame, final force)
     let mut rows = Vec::new();
     let mut layered = sparsh_contact::Bem::layered(gel, grid);
     let (mean, worst, _, force) = time_frames(&gaps, |gap| {
-        (layered.solve(&input(gap)).expect("layered solve"), 0)
+        (
+            layered.solve(&pressed(gap, &still)).expect("layered solve"),
+            0,
+        )
     });
     rows.push((
         "layered (boundary elements)".to_string(),
@@ -224,7 +222,7 @@ fn deep_press(frames: usize) {
             "fem, from rest each frame"
         };
         let (mean, worst, its, force) = time_frames(&gaps, |gap| {
-            let fields = fem.solve(&input(gap)).expect("fem solve");
+            let fields = fem.solve(&pressed(gap, &still)).expect("fem solve");
             (fields, fem.stats().newton_iterations)
         });
         rows.push((label.to_string(), mean, worst, its, force));
@@ -269,4 +267,13 @@ fn time_frames(
     }
     let n = gaps.len() as f64;
     (total / n, worst, iterations as f64 / n, force)
+}
+
+/// Displacement control, the indenter not moving sideways.
+fn pressed<'a>(gap: &'a GapField, still: &'a [[f64; 2]]) -> ContactInput<'a> {
+    ContactInput {
+        gap,
+        normal: NormalControl::Approach,
+        rigid_shift_mm: still,
+    }
 }

@@ -174,7 +174,7 @@ mod tests {
         assert_eq!(a.last(), Some(&12.0));
         assert!(a.windows(2).all(|w| w[1] > w[0]));
         let steps: Vec<f64> = a.windows(2).map(|w| w[1] - w[0]).collect();
-        assert!(steps.iter().all(|&s| s >= 0.1 - 1e-9 && s < 12.0));
+        assert!(steps.iter().all(|s| (0.1 - 1e-9..12.0).contains(s)));
         // Neighbouring steps differ by at most the growth (and the merged last element).
         for w in steps.windows(2) {
             let r = w[1].max(w[0]) / w[1].min(w[0]);

@@ -211,6 +211,9 @@ struct Assembled {
     hessian: Vec<f64>,
 }
 
+/// One element's index, energy terms and nodes.
+type Evaluated = (usize, element::ElementState, [usize; 8]);
+
 /// What failed inside a solve.
 enum Failure {
     NotConverged { iterations: usize, residual: f64 },
@@ -335,7 +338,7 @@ impl Fem {
     ) -> Result<Assembled, Failure> {
         let mesh = &st.mesh;
         let sys = &st.system;
-        let [nx, ny, nz] = mesh.counts();
+        let [nx, ny, _] = mesh.counts();
         let nfree = mesh.free_dofs();
         let mut gradient = vec![0.0; nfree];
         let mut values = if hessian {
@@ -348,8 +351,7 @@ impl Fem {
         let n_el = mesh.elements();
         const CHUNK: usize = 2048;
         for start in (0..n_el).step_by(CHUNK) {
-            let results: Vec<Result<(usize, element::ElementState, [usize; 8]), Failure>> = (start
-                ..(start + CHUNK).min(n_el))
+            let results: Vec<Result<Evaluated, Failure>> = (start..(start + CHUNK).min(n_el))
                 .into_par_iter()
                 .map(|e| {
                     let (i, j, k) = (e % ex, (e / ex) % ey, e / (ex * ey));
@@ -384,7 +386,6 @@ impl Fem {
                 }
             }
         }
-        let _ = nz;
         // Contact and friction on the surface nodes (k = 0).
         let eps = self.penalty(mesh);
         let mut peak_contact_force = 0.0f64;
@@ -406,10 +407,8 @@ impl Fem {
                 gradient[3 * n + d] += c.gradient[d];
             }
             if hessian {
-                let diag = sys.col_ptr[3 * n];
                 for col in 0..3 {
                     let base = sys.col_ptr[3 * n + col];
-                    let _ = diag;
                     // Column 3n + col holds rows 3n + col, 3n + col + 1, … first (ascending).
                     for row in col..3 {
                         values[base + (row - col)] += c.hessian[row][col];
@@ -488,22 +487,23 @@ impl Fem {
                 {
                     *t = u + alpha * s;
                 }
-                if let Ok(e) = self.energy(st, &trial, ind) {
-                    if e <= a.energy + 1e-4 * alpha * slope {
-                        accepted = true;
-                        break;
-                    }
+                if self
+                    .energy(st, &trial, ind)
+                    .is_ok_and(|e| e <= a.energy + 1e-4 * alpha * slope)
+                {
+                    accepted = true;
+                    break;
                 }
                 // Near the solution the energy's decrease drowns in round-off: accept the full
                 // step when it shrinks the residual instead.
-                if alpha == 1.0 && -slope <= 1e-10 * a.energy.abs() {
-                    if let Ok(t) = self.assemble(st, &trial, ind, false) {
-                        let r = t.gradient.iter().fold(0.0f64, |m, g| m.max(g.abs()));
-                        if r < 0.5 * residual {
-                            accepted = true;
-                            break;
-                        }
-                    }
+                if alpha == 1.0
+                    && -slope <= 1e-10 * a.energy.abs()
+                    && self.assemble(st, &trial, ind, false).is_ok_and(|t| {
+                        t.gradient.iter().fold(0.0f64, |m, g| m.max(g.abs())) < 0.5 * residual
+                    })
+                {
+                    accepted = true;
+                    break;
                 }
                 alpha *= 0.5;
             }
@@ -643,8 +643,8 @@ fn contact_terms(
         let norm = trial[0].hypot(trial[1]);
         if norm <= b {
             t.energy += area * norm * norm / (2.0 * et);
-            for d in 0..2 {
-                t.gradient[d] += area * trial[d];
+            for (d, trial_d) in trial.iter().enumerate() {
+                t.gradient[d] += area * trial_d;
                 t.hessian[d][d] += area * et;
             }
             t.traction = [-trial[0], -trial[1]];
@@ -712,8 +712,8 @@ impl State {
                 * if dj == 1 { ty } else { 1.0 - ty }
                 * if dk == 1 { tz } else { 1.0 - tz };
             let n = m.node(i + di, j + dj, k + dk);
-            for c in 0..3 {
-                out[c] += w * self.u[3 * n + c];
+            for (o, u) in out.iter_mut().zip(&self.u[3 * n..3 * n + 3]) {
+                *o += w * u;
             }
         }
         out
@@ -975,10 +975,8 @@ impl Fem {
             }
             if f < 0.0 {
                 lo = (guess, f);
-                if last_side == -1 {
-                    if let Some(h) = hi.as_mut() {
-                        h.1 *= 0.5;
-                    }
+                if let (-1, Some(h)) = (last_side, hi.as_mut()) {
+                    h.1 *= 0.5;
                 }
                 last_side = -1;
             } else {
@@ -1215,8 +1213,8 @@ impl Fem {
                 let mut u = [0.0; 3];
                 let (mut p, mut q) = (0.0, [0.0; 2]);
                 for &(n, w) in &weights {
-                    for c in 0..3 {
-                        u[c] += w * st.u[3 * n + c];
+                    for (uc, un) in u.iter_mut().zip(&st.u[3 * n..3 * n + 3]) {
+                        *uc += w * un;
                     }
                     p += w * pressure[n];
                     q[0] += w * traction[n][0];
@@ -1238,8 +1236,8 @@ impl Fem {
         f.approach_offset_mm = approach_mm;
         // Path history for the next frame: this frame's friction tractions (gel on indenter) and
         // tangential displacements.
-        for n in 0..surface {
-            st.q_prev[n] = [-traction[n][0], -traction[n][1]];
+        for (n, t) in traction.iter().enumerate() {
+            st.q_prev[n] = [-t[0], -t[1]];
             st.ut_prev[n] = [st.u[3 * n], st.u[3 * n + 1]];
         }
         f
