@@ -46,16 +46,30 @@ fn print_table(report: &Report) {
             }
         );
     }
+    let reported = report.rows.iter().filter(|r| r.tolerance.is_none()).count();
+    if reported > 0 {
+        println!(
+            "({reported} rows marked `report` are compared for information, not graded: lengths \
+             measured from the contact mask, and references whose accuracy is not established)"
+        );
+    }
     if !report.convergence.is_empty() {
         println!(
-            "\nconvergence under grid refinement (|rel. error| at each cell size; observed order)"
+            "\nconvergence under refinement (|rel. error| at each cell size, or finite elements per \
+             contact radius; observed order)"
         );
         for c in &report.convergence {
             let errors: Vec<String> = c
                 .cell_mm
                 .iter()
                 .zip(&c.rel_error)
-                .map(|(h, e)| format!("{h:.4} mm: {:.2e}", e.abs()))
+                .map(|(h, e)| {
+                    if c.case.ends_with("(elements per radius)") {
+                        format!("{:.0} per radius: {:.2e}", 1.0 / h, e.abs())
+                    } else {
+                        format!("{h:.4} mm: {:.2e}", e.abs())
+                    }
+                })
                 .collect();
             let orders: Vec<String> = c.observed_order.iter().map(|p| format!("{p:.2}")).collect();
             println!(

@@ -115,7 +115,8 @@ pub struct Convergence {
     pub case: String,
     /// Quantity.
     pub quantity: String,
-    /// Cell sizes, coarse to fine (mm).
+    /// Cell sizes, coarse to fine (mm); for a finite-element mesh study (a case named
+    /// `… (elements per radius)`), 1/(elements per contact radius).
     pub cell_mm: Vec<f64>,
     /// Relative errors at those cell sizes.
     pub rel_error: Vec<f64>,
