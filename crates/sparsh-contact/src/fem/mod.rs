@@ -894,10 +894,13 @@ impl ContactSolver for Fem {
                         ),
                     });
                 }
-                let approach = 0.0;
-                let fields = self.solve_at(input, approach)?;
-                Ok(fields)
+                self.solve_at(input, 0.0)
             }
+            NormalControl::Force(_) if !deepest.is_finite() => Err(ContactError::OutOfValidity {
+                solver: "fem",
+                reason: "no part of the indenter is above the gel, so no approach gives a load"
+                    .into(),
+            }),
             NormalControl::Force(target_n) => self.solve_load(input, target_n, deepest),
         }
     }
