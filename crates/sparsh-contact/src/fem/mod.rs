@@ -1346,6 +1346,24 @@ mod tests {
     }
 
     #[test]
+    fn a_load_with_nothing_above_the_gel_is_refused() {
+        let (grid, _) = shallow();
+        let nothing = GapField {
+            grid,
+            gap_mm: vec![f64::INFINITY; grid.len()],
+        };
+        let shift = vec![[0.0; 2]; grid.len()];
+        let err = Fem::new(layer(1.0, 0.5), grid)
+            .solve(&ContactInput {
+                gap: &nothing,
+                normal: NormalControl::Force(0.01),
+                rigid_shift_mm: &shift,
+            })
+            .unwrap_err();
+        assert!(err.to_string().contains("no part of the indenter"), "{err}");
+    }
+
+    #[test]
     fn an_iteration_cap_is_a_typed_error_with_its_residual() {
         let (grid, gap) = shallow();
         let options = FemOptions {
