@@ -149,14 +149,18 @@ impl SolverTable {
     /// The error of `rung` at indentation depth over gel thickness `depth_over_h`, from the depth
     /// sweep on the hard side: the worst error of the swept depths up to the shallowest one at or
     /// past the query (so a rung that once missed does not come back deeper; ∞ past the deepest
-    /// swept depth; 0 when the table has no depth rows for the rung).
+    /// swept depth). Presses no deeper than the shallowest swept depth are the small-strain
+    /// regime the rest of the table covers (the sweep is a sphere on a thin layer, so its
+    /// shallow rows also hold the layer's effect, which a/h already bounds): 0 there, and when
+    /// the table has no depth rows for the rung.
     pub fn depth_error(&self, rung: SolverKind, depth_over_h: f64) -> f64 {
         let rows: Vec<&TableRow> = self
             .rows
             .iter()
             .filter(|r| r.rung == rung && r.depth_over_h > 0.0)
             .collect();
-        if rows.is_empty() {
+        let shallowest = rows.iter().map(|r| r.depth_over_h).reduce(f64::min);
+        if shallowest.is_none_or(|d| depth_over_h <= d) {
             return 0.0;
         }
         let Some(bound) = rows
