@@ -648,7 +648,8 @@ impl ContactSolver for Bem {
         if touches_edge {
             return Err(self.out_of_validity("the contact patch touches the grid edge"));
         }
-        if self.layer.is_some() && offset_mm - nearest_mm >= self.gel.thickness_mm {
+        // No gel is deeper than its thickness, whatever the rung models below it.
+        if offset_mm - nearest_mm >= self.gel.thickness_mm {
             return Err(self.out_of_validity(format!(
                 "indentation {:.3} mm exceeds the gel thickness {} mm",
                 offset_mm - nearest_mm,

@@ -81,6 +81,16 @@ impl ContactSolver for Geometric {
             NormalControl::Force(f) => self.approach_for_load(gap, f)?,
         };
         let depth: Vec<f64> = gap.iter().map(|g| (offset - g).max(0.0)).collect();
+        let deepest = depth.iter().copied().fold(0.0, f64::max);
+        if deepest >= self.gel.thickness_mm {
+            return Err(ContactError::OutOfValidity {
+                solver: "geometric",
+                reason: format!(
+                    "indentation {deepest:.3} mm reaches the gel thickness {} mm",
+                    self.gel.thickness_mm
+                ),
+            });
+        }
         let mut fields = Fields::zero(grid);
         fields.approach_offset_mm = offset;
         if depth.iter().all(|&d| d == 0.0) {

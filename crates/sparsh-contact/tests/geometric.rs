@@ -69,3 +69,30 @@ fn load_control_finds_the_winkler_approach() {
     let depth_mm = 0.2 / (k_kpa_per_mm * cells * GRID.cell_area_mm2() * 1e-3);
     assert!((fields.approach_offset_mm - (0.05 + depth_mm)).abs() < 1e-9);
 }
+
+/// A press at or past the gel's thickness is refused by every rung, whatever it models below
+/// the gel (the half-space has no bottom, the Winkler bed no depth limit of its own).
+#[test]
+fn every_rung_refuses_a_press_through_the_gel() {
+    let gel = Gel {
+        thickness_mm: 0.5,
+        ..Gel::default()
+    };
+    let gap = punch_gap(0.6);
+    let shift = vec![[0.0; 2]; GRID.len()];
+    for kind in sparsh_scene::SolverKind::ALL {
+        let mut solver = sparsh_contact::solver_for(kind, &gel, GRID);
+        let err = solver
+            .solve(&ContactInput {
+                gap: &gap,
+                normal: NormalControl::Approach,
+                rigid_shift_mm: &shift,
+            })
+            .expect_err("a 0.6 mm press into a 0.5 mm gel");
+        assert!(
+            matches!(err, sparsh_contact::ContactError::OutOfValidity { .. }),
+            "{kind:?}: {err}"
+        );
+        assert!(err.to_string().contains("0.5 mm"), "{kind:?}: {err}");
+    }
+}
