@@ -513,6 +513,13 @@ fn export_writes_the_official_sparsh_layout() {
         out_dir.to_str().unwrap(),
     ]);
     assert!(out.status.success(), "{}", stderr(&out));
+    // one line saying what was written
+    let said = stderr(&out);
+    assert_eq!(said.trim_end().lines().count(), 1, "{said}");
+    assert!(
+        said.contains("pkl: ") && said.contains(" sequences in the sparsh-pkl layout"),
+        "{said}"
+    );
     let labels = std::fs::read_to_string(ds.join("labels.jsonl")).unwrap();
     let rows: Vec<serde_json::Value> = labels
         .lines()

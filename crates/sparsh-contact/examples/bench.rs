@@ -15,15 +15,29 @@ use glam::DVec3;
 use sparsh_contact::{
     ContactInput, ContactSolver, Fem, FemOptions, NormalControl, rigid_shift_mm, solver_for,
 };
-use sparsh_scene::{GapField, Gel, Grid, Indenter, IndenterSpec, Pose, ShapeKind, SolverKind};
+use sparsh_scene::{GapField, Gel, Grid, Indenter, Pose, SolverKind};
+
+/// A DIGIT-sized grid: 320 × 240 cells of 0.0532 mm.
+const DIGIT_GRID: Grid = Grid {
+    nx: 320,
+    ny: 240,
+    cell_mm: 0.0532,
+};
+
+/// The benchmarks' gel: E = 300 kPa, ν = 0.48, 3 mm thick, μ = 1.
+const DIGIT_GEL: Gel = Gel {
+    youngs_modulus_kpa: 300.0,
+    poisson_ratio: 0.48,
+    thickness_mm: 3.0,
+    friction: 1.0,
+};
 
 fn main() {
     let args: Vec<String> = std::env::args().collect();
     if args.get(1).map(String::as_str) == Some("scene") {
         let scene = sparsh_scene::Scene::load(std::path::Path::new(&args[2])).expect("scene");
         let grid = scene.grid();
-        let mut fem = (scene.solver == SolverKind::Fem).then(|| Fem::new(scene.gel, grid));
-        let mut other = solver_for(scene.solver, &scene.gel, grid);
+        let mut solver = solver_for(scene.solver, &scene.gel, grid);
         let (mut total, mut worst, mut previous) = (0.0f64, 0.0f64, None::<Pose>);
         let frames = scene.frames();
         for f in &frames {
@@ -36,26 +50,14 @@ fn main() {
                 .normal_force_n
                 .map_or(NormalControl::Approach, NormalControl::Force);
             let start = Instant::now();
-            let input = ContactInput {
-                gap: &gap,
-                normal,
-                rigid_shift_mm: &shift,
-            };
-            let fields = match fem.as_mut() {
-                Some(f) => f.solve(&input),
-                None => other.solve(&input),
-            }
-            .expect("solve");
+            solver
+                .solve(&ContactInput {
+                    gap: &gap,
+                    normal,
+                    rigid_shift_mm: &shift,
+                })
+                .expect("solve");
             let t = start.elapsed().as_secs_f64();
-            if let Some(f) = &fem {
-                eprintln!(
-                    "{:.3} s  F = {:.4} N  {:?}  {:?}",
-                    t,
-                    fields.force_n[2],
-                    fields.slip_state(),
-                    f.stats()
-                );
-            }
             total += t;
             worst = worst.max(t);
             previous = Some(f.pose);
@@ -81,33 +83,8 @@ fn main() {
         _ => SolverKind::Halfspace,
     };
     let slide = args.get(2).map(String::as_str) != Some("normal");
-    let grid = Grid {
-        nx: 320,
-        ny: 240,
-        cell_mm: 0.0532,
-    };
-    let gel = Gel {
-        youngs_modulus_kpa: 300.0,
-        poisson_ratio: 0.48,
-        thickness_mm: 3.0,
-        friction: 1.0,
-    };
-    let spec = IndenterSpec {
-        shape: ShapeKind::Sphere,
-        radius_mm: Some(3.0),
-        height_mm: None,
-        half_angle_deg: None,
-        size_mm: None,
-        pattern: None,
-        pitch_mm: None,
-        depth_mm: None,
-        crown_radius_mm: None,
-        mesh: None,
-        scale: None,
-        units: None,
-        anchor: None,
-    };
-    let indenter: Indenter = spec.build(std::path::Path::new(".")).expect("sphere");
+    let (grid, gel) = (DIGIT_GRID, DIGIT_GEL);
+    let indenter = Indenter::Sphere { radius_mm: 3.0 };
     let mut solver = solver_for(kind, &gel, grid);
     let poses: Vec<Pose> = (0..120)
         .map(|k| {
@@ -157,33 +134,8 @@ fn main() {
 
 /// The deep-press benchmark of the finite-element rung (see the module comment).
 fn deep_press(frames: usize) {
-    let grid = Grid {
-        nx: 320,
-        ny: 240,
-        cell_mm: 0.0532,
-    };
-    let gel = Gel {
-        youngs_modulus_kpa: 300.0,
-        poisson_ratio: 0.48,
-        thickness_mm: 3.0,
-        friction: 1.0,
-    };
-    let spec = IndenterSpec {
-        shape: ShapeKind::Sphere,
-        radius_mm: Some(6.0),
-        height_mm: None,
-        half_angle_deg: None,
-        size_mm: None,
-        pattern: None,
-        pitch_mm: None,
-        depth_mm: None,
-        crown_radius_mm: None,
-        mesh: None,
-        scale: None,
-        units: None,
-        anchor: None,
-    };
-    let indenter: Indenter = spec.build(std::path::Path::new(".")).expect("sphere");
+    let (grid, gel) = (DIGIT_GRID, DIGIT_GEL);
+    let indenter = Indenter::Sphere { radius_mm: 6.0 };
     let gaps: Vec<GapField> = (1..=frames)
         .map(|k| {
             let pose = Pose {
