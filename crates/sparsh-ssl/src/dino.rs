@@ -225,16 +225,17 @@ impl DinoConfig {
     }
 }
 
-/// KoLeo regularizer (Sablayrolles et al. 2019, as in DINOv2): −mean_i ln(min_{j≠i} ‖x̂_i − x̂_j‖)
-/// over the L2-normalized rows x̂ of `x`; it grows without bound as rows coincide, so it pushes a
-/// collapsing batch apart.
+/// KoLeo regularizer (Sablayrolles et al. 2019, as in DINOv2's `KoLeoLoss`):
+/// −mean_i ln(‖x̂_i − x̂_{n(i)} + 1e-8‖ + 1e-8) over the rows x̂ = x / max(‖x‖, 1e-8) of `x`, n(i)
+/// the row of largest dot product with x̂_i other than itself; it grows without bound as rows
+/// coincide, so it pushes a collapsing batch apart.
 ///
 /// # Shapes
 /// - `x`: `[batch, dim]` (batch ≥ 2) → `[1]`
 pub fn koleo(x: Tensor<2>) -> Tensor<1> {
     let [n, _] = x.dims();
     let device = x.device();
-    let norm = x.clone().powi_scalar(2).sum_dim(1).sqrt().clamp_min(1e-12);
+    let norm = x.clone().powi_scalar(2).sum_dim(1).sqrt().clamp_min(1e-8);
     let unit = x / norm;
     // the nearest neighbour by the largest dot product (the diagonal lifted out of the way), then
     // its distance from the difference itself, as DINOv2's pdist does: 2 − 2·x̂_i·x̂_j cannot
@@ -251,7 +252,9 @@ pub fn koleo(x: Tensor<2>) -> Tensor<1> {
 }
 
 /// The teacher's target distribution from its prototype scores `t` (`[rows, prototypes]`):
-/// `softmax((t − centre) / τ)` or, under [`TeacherNorm::Batch`], `softmax(standardize_rows(t) / τ)`.
+/// centred and sharpened, `softmax((t − centre) / τ)` (Caron et al. 2021, §3.1), or, under
+/// [`TeacherNorm::Batch`], `softmax((t − mean_rows t) / √(var_rows t + 1e-8) / τ)` (variance
+/// over the rows, biased).
 pub fn teacher_targets(
     t: Tensor<2>,
     center: Tensor<2>,
@@ -266,6 +269,60 @@ pub fn teacher_targets(
         }
     };
     softmax(scores.div_scalar(temperature), 1)
+}
+
+/// `−mean_rows Σ_k p_t · log p_s` for target distributions `t_prob` and student log-probabilities
+/// `s_logp` (`[rows, prototypes]` both).
+fn soft_cross_entropy(t_prob: Tensor<2>, s_logp: Tensor<2>) -> Tensor<1> {
+    (t_prob * s_logp).sum_dim(1).mean().neg()
+}
+
+/// Cross-entropy of the student's sharpened scores `s` against the targets `t_prob`, averaged
+/// over the rows (`[rows, prototypes]` both): `−mean_rows Σ_k p_t · log_softmax(s / τ_s)`. The
+/// iBOT term of DINOv2 (Zhou et al. 2022, the masked-image-modelling loss L_MIM) on the masked
+/// tokens; with the same number of masked tokens in every view, the mean over all of them is
+/// DINOv2's per-image mean.
+pub fn cross_entropy(t_prob: Tensor<2>, s: Tensor<2>, student_temp: f64) -> Tensor<1> {
+    soft_cross_entropy(t_prob, log_softmax(s.div_scalar(student_temp), 1))
+}
+
+/// DINO's multi-view loss (Caron et al. 2021, eq. 3 and Algorithm 1, `DINOLoss` of the DINO
+/// code): the teacher targets `t_prob` of the `g` global views (`[g · batch, prototypes]`, view
+/// by view) against the student scores `s` of every view (`[views · batch, prototypes]`, the
+/// global views first), over the pairs of different views:
+///
+/// ```text
+/// loss = mean_{i < g, v ≠ i} mean_batch( −Σ_k P_t,i · log_softmax(s_v / τ_s) )
+/// ```
+pub fn dino_cross_entropy(
+    t_prob: Tensor<2>,
+    s: Tensor<2>,
+    batch: usize,
+    student_temp: f64,
+) -> Tensor<1> {
+    let g = t_prob.dims()[0] / batch;
+    let s_logp = log_softmax(s.div_scalar(student_temp), 1);
+    let n_views = s_logp.dims()[0] / batch;
+    let mut total: Option<Tensor<1>> = None;
+    let mut pairs = 0;
+    for i in 0..g {
+        let t = t_prob.clone().narrow(0, i * batch, batch);
+        for v in (0..n_views).filter(|&v| v != i) {
+            let ce = soft_cross_entropy(t.clone(), s_logp.clone().narrow(0, v * batch, batch));
+            total = Some(match total {
+                Some(acc) => acc + ce,
+                None => ce,
+            });
+            pairs += 1;
+        }
+    }
+    total.expect("at least two views").div_scalar(pairs as f64)
+}
+
+/// DINO's centre update (Caron et al. 2021, eq. 4): `c ← m · c + (1 − m) · mean_batch t`, with
+/// `teacher_mean` the teacher scores' mean over the step's rows (`[1, prototypes]` both).
+pub fn updated_center(center: Tensor<2>, teacher_mean: Tensor<2>, momentum: f64) -> Tensor<2> {
+    (center.mul_scalar(momentum) + teacher_mean.mul_scalar(1.0 - momentum)).detach()
 }
 
 /// The tokens of each view of each sample, `[views × batch, k, dim]`.
@@ -372,23 +429,7 @@ impl Dino {
             let local = view_tokens(student_tokens, &views.local);
             s_all.push(self.head.forward(cls(&self.encoder.forward_tokens(local))));
         }
-        let s_logp = log_softmax(Tensor::cat(s_all, 0).div_scalar(self.student_temp), 1);
-        let n_views = s_logp.dims()[0] / b;
-        let mut total: Option<Tensor<1>> = None;
-        let mut pairs = 0;
-        for i in 0..g {
-            let t = t_prob.clone().narrow(0, i * b, b);
-            for v in (0..n_views).filter(|&v| v != i) {
-                let s = s_logp.clone().narrow(0, v * b, b);
-                let ce = (t.clone() * s).sum_dim(1).mean().neg();
-                total = Some(match total {
-                    Some(acc) => acc + ce,
-                    None => ce,
-                });
-                pairs += 1;
-            }
-        }
-        let mut loss = total.expect("at least two views").div_scalar(pairs as f64);
+        let mut loss = dino_cross_entropy(t_prob, Tensor::cat(s_all, 0), b, self.student_temp);
         if self.ibot_weight > 0.0 && !masked.is_empty() {
             let idx = index_tensor(&masked, &device);
             let rows = |patches: Tensor<3>| {
@@ -399,13 +440,8 @@ impl Dino {
             let t_patch = self.teacher_head.forward(rows(t_views.patches)).detach();
             let t_patch =
                 teacher_targets(t_patch, self.center.val(), TeacherNorm::Batch, teacher_temp);
-            let s_patch = log_softmax(
-                self.head
-                    .forward(rows(s_views.patches))
-                    .div_scalar(self.student_temp),
-                1,
-            );
-            let ce = (t_patch * s_patch).sum_dim(1).mean().neg();
+            let s_patch = self.head.forward(rows(s_views.patches));
+            let ce = cross_entropy(t_patch, s_patch, self.student_temp);
             loss = loss + ce.mul_scalar(self.ibot_weight);
         }
         if self.koleo_weight > 0.0 {
@@ -423,10 +459,9 @@ impl Dino {
         self.teacher_encoder = ema_update(self.teacher_encoder, &self.encoder, momentum);
         self.teacher_head = ema_update(self.teacher_head, &self.head, momentum);
         let m = self.center_momentum;
-        let mean = teacher_mean.detach();
         self.center = self
             .center
-            .map(|c| (c.mul_scalar(m) + mean.mul_scalar(1.0 - m)).detach());
+            .map(|c| updated_center(c, teacher_mean.detach(), m));
         self
     }
 }

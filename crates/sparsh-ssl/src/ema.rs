@@ -35,7 +35,8 @@ impl ModuleMapper for Blend {
     }
 }
 
-/// `target ← m · target + (1 − m) · source`, parameter by parameter in traversal order.
+/// `target ← m · target + (1 − m) · source`, parameter by parameter in traversal order (DINO,
+/// Caron et al. 2021, §3.1; official `update_moving_average`).
 /// `momentum = 0` copies `source`; the result never takes part in autodiff.
 pub fn ema_update<M: Module>(target: M, source: &M, momentum: f64) -> M {
     let mut collect = Collect(VecDeque::new());
@@ -46,7 +47,9 @@ pub fn ema_update<M: Module>(target: M, source: &M, momentum: f64) -> M {
     })
 }
 
-/// The official linear ramp of the EMA momentum from `start` to `end` over the run.
+/// The official linear ramp of the EMA momentum from `start` to `end` over the run: the update
+/// after step `step` uses `start + (end − start) · step / total` (Sparsh's `momentum_scheduler`
+/// of I-JEPA and V-JEPA; I-JEPA, Assran et al. 2023, §4), held at `end` past `total`.
 pub fn momentum_at(start: f64, end: f64, step: usize, total: usize) -> f64 {
     start + (end - start) * (step as f64 / total.max(1) as f64).min(1.0)
 }

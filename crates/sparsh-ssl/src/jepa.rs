@@ -183,69 +183,90 @@ impl JepaConfig {
     }
 }
 
-/// Layer norm without affine parameters over the last axis (`F.layer_norm(h, (dim,))`).
-fn plain_layer_norm(h: Tensor<3>) -> Tensor<3> {
+/// The regression targets from the target encoder's tokens `h`: layer norm without affine
+/// parameters over the features (`F.layer_norm(h, (dim,))`, eps 1e-5, in the official I-JEPA
+/// and V-JEPA code), then, under [`TargetNorm::LayerBatch`], standardized over the batch.
+///
+/// # Shapes
+/// - `h`: `[batch, tokens, dim]` → same
+pub fn regression_targets(h: Tensor<3>, norm: TargetNorm) -> Tensor<3> {
     let c = h.clone() - h.mean_dim(2);
     let var = c.clone().powi_scalar(2).mean_dim(2);
-    c / (var + 1e-5).sqrt()
+    let h = c / (var + 1e-5).sqrt();
+    match norm {
+        TargetNorm::Layer => h,
+        TargetNorm::LayerBatch => batch_standardize(h),
+    }
+}
+
+/// The latent regression loss over the mask sets, each pair (prediction, target) of shape
+/// `[rows, k_target, dim]`: the mean over the sets of the mean over all elements of
+///
+/// ```text
+/// SmoothL1 (I-JEPA, F.smooth_l1_loss, β = 1): ½ d² where |d| < 1, |d| − ½ elsewhere
+/// L1 (V-JEPA `loss_fn`, loss_exp = 1):        |d|
+/// ```
+/// with `d = pred − target`.
+pub fn latent_loss(pairs: Vec<(Tensor<3>, Tensor<3>)>, kind: JepaLoss) -> Tensor<1> {
+    let n = pairs.len();
+    pairs
+        .into_iter()
+        .map(|(pred, target)| {
+            let d = (pred - target).abs();
+            match kind {
+                JepaLoss::L1 => d.mean(),
+                JepaLoss::SmoothL1 => {
+                    let q = d.clone().clamp_max(1.0);
+                    (q.clone() * (d - q.mul_scalar(0.5))).mean()
+                }
+            }
+        })
+        .reduce(|acc, l| acc + l)
+        .expect("at least one mask set")
+        .div_scalar(n as f64)
 }
 
 impl Jepa {
     /// Latent regression loss averaged over the mask sets and their target sets.
     ///
     /// ```text
-    /// h = layer_norm(target_encoder(x))  [then batch_standardize(h) under TargetNorm::LayerBatch]
+    /// h = regression_targets(target_encoder(x))
     /// z = encoder(x[context])
-    /// loss = mean_sets mean_targets ℓ(predictor(z, context, target), h[target])
+    /// loss = latent_loss over the sets of (predictor(z, context, target), h[target])
     /// ```
     ///
     /// # Shapes
     /// - `x`: `[batch, frames, channels, height, width]` → `[1]`
     pub fn loss(&self, x: Tensor<5>, mask_sets: &[JepaMasks]) -> Tensor<1> {
         let device = x.device();
-        let h = plain_layer_norm(
+        let h = regression_targets(
             self.target_encoder
                 .forward(x.clone().detach(), None)
                 .patches,
-        );
-        let h = match self.target_norm {
-            TargetNorm::Layer => h,
-            TargetNorm::LayerBatch => batch_standardize(h),
-        }
+            self.target_norm,
+        )
         .detach();
         let tokens = self.encoder.embed(x);
-        let mut total: Option<Tensor<1>> = None;
-        for masks in mask_sets {
-            let m = masks.targets.len();
-            let ctx_idx = index_tensor(&masks.context, &device);
-            let z = self
-                .encoder
-                .forward_tokens(gather_tokens(tokens.clone(), ctx_idx.clone()))
-                .patches;
-            let rows: Vec<Vec<usize>> = masks.targets.iter().flatten().cloned().collect();
-            let tgt_idx = index_tensor(&rows, &device);
-            let pred = self.predictor.forward(
-                z.repeat_dim(0, m),
-                ctx_idx.repeat_dim(0, m),
-                tgt_idx.clone(),
-            );
-            let target = gather_tokens(h.clone().repeat_dim(0, m), tgt_idx);
-            let d = (pred - target).abs();
-            let l = match self.loss_kind {
-                JepaLoss::L1 => d.mean(),
-                JepaLoss::SmoothL1 => {
-                    let q = d.clone().clamp_max(1.0);
-                    (q.clone() * (d - q.mul_scalar(0.5))).mean()
-                }
-            };
-            total = Some(match total {
-                Some(acc) => acc + l,
-                None => l,
-            });
-        }
-        total
-            .expect("at least one mask set")
-            .div_scalar(mask_sets.len() as f64)
+        let pairs = mask_sets
+            .iter()
+            .map(|masks| {
+                let m = masks.targets.len();
+                let ctx_idx = index_tensor(&masks.context, &device);
+                let z = self
+                    .encoder
+                    .forward_tokens(gather_tokens(tokens.clone(), ctx_idx.clone()))
+                    .patches;
+                let rows: Vec<Vec<usize>> = masks.targets.iter().flatten().cloned().collect();
+                let tgt_idx = index_tensor(&rows, &device);
+                let pred = self.predictor.forward(
+                    z.repeat_dim(0, m),
+                    ctx_idx.repeat_dim(0, m),
+                    tgt_idx.clone(),
+                );
+                (pred, gather_tokens(h.clone().repeat_dim(0, m), tgt_idx))
+            })
+            .collect();
+        latent_loss(pairs, self.loss_kind)
     }
 
     /// After an optimizer step: EMA of the target encoder with `momentum`.

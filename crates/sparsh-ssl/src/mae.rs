@@ -1,5 +1,5 @@
 //! MAE (He et al. 2022): encode the visible 25 % of the patches, reconstruct the pixels of the
-//! masked ones with a light decoder, L2 on the masked patches only.
+//! masked ones with a light decoder, L2 on the masked patches only ([`masked_mse`]).
 
 use burn::module::Param;
 use burn::nn::{LayerNorm, LayerNormConfig, Linear, LinearConfig};
@@ -28,6 +28,9 @@ pub struct MaeConfig {
     /// Decoder heads.
     #[config(default = 16)]
     pub decoder_heads: usize,
+    /// Regress per-patch standardized pixels (MAE's `norm_pix_loss`; off in Sparsh).
+    #[config(default = false)]
+    pub norm_pix_loss: bool,
 }
 
 /// MAE: encoder, decoder and pixel head.
@@ -48,6 +51,9 @@ pub struct Mae {
     /// Fixed decoder position embedding `[1, tokens, decoder_dim]`.
     #[module(skip)]
     pub decoder_pos: Tensor<3>,
+    /// Per-patch standardized targets ([`masked_mse`]).
+    #[module(skip)]
+    pub norm_pix_loss: bool,
 }
 
 impl MaeConfig {
@@ -69,16 +75,54 @@ impl MaeConfig {
             decoder_norm: LayerNormConfig::new(dd).with_epsilon(LN_EPS).init(device),
             decoder_pred: LinearConfig::new(dd, e.patch_dim()).init(device),
             decoder_pos: sincos_tensor(dd, e.grid(), device),
+            norm_pix_loss: self.norm_pix_loss,
         }
     }
 }
 
+/// MAE's reconstruction loss (He et al. 2022, §3 "Reconstruction target"; official
+/// `MAEModule.compute_loss`): the mean squared error per patch, averaged over the masked patches
+/// only.
+///
+/// ```text
+/// target_i = (patch_i − mean_j patch_ij) / √(var_j patch_ij + 1e-6)   [norm_pix only; var unbiased, as torch.var]
+/// loss = Σ_i mask_i · mean_j (pred_ij − target_ij)² / Σ_i mask_i
+/// ```
+///
+/// # Shapes
+/// - `pred`, `target`: `[batch, tokens, patch_dim]`, `masked`: `[batch][tokens]` → `[1]`
+pub fn masked_mse(
+    pred: Tensor<3>,
+    target: Tensor<3>,
+    masked: &[Vec<bool>],
+    norm_pix: bool,
+) -> Tensor<1> {
+    let device = pred.device();
+    let [b, n, d] = target.dims();
+    let target = if norm_pix {
+        let c = target.clone() - target.mean_dim(2);
+        let var = c
+            .clone()
+            .powi_scalar(2)
+            .sum_dim(2)
+            .div_scalar((d.max(2) - 1) as f64);
+        c / (var + 1e-6).sqrt()
+    } else {
+        target
+    };
+    let per_patch = (pred - target).powi_scalar(2).mean_dim(2).reshape([b, n]);
+    let weights: Vec<f32> = masked
+        .iter()
+        .flatten()
+        .map(|&m| if m { 1.0 } else { 0.0 })
+        .collect();
+    let count = weights.iter().sum::<f32>().max(1.0);
+    let w = Tensor::<1>::from_floats(weights.as_slice(), &device).reshape([b, n]);
+    (per_patch * w).sum().div_scalar(count)
+}
+
 impl Mae {
-    /// Mean squared error of the reconstruction over the masked patches.
-    ///
-    /// ```text
-    /// loss = Σ_{masked} mean_j (pred_ij − patch_ij)² / #masked
-    /// ```
+    /// Reconstruction loss of the masked patches ([`masked_mse`]).
     ///
     /// # Shapes
     /// - `x`: `[batch, frames, channels, height, width]`
@@ -103,15 +147,6 @@ impl Mae {
             z = block.forward(z);
         }
         let pred = self.decoder_pred.forward(self.decoder_norm.forward(z));
-        let per_patch = (pred - target).powi_scalar(2).mean_dim(2).reshape([b, n]);
-        let weights: Vec<f32> = mask
-            .masked
-            .iter()
-            .flatten()
-            .map(|&m| if m { 1.0 } else { 0.0 })
-            .collect();
-        let count = weights.iter().sum::<f32>().max(1.0);
-        let w = Tensor::<1>::from_floats(weights.as_slice(), &device).reshape([b, n]);
-        (per_patch * w).sum().div_scalar(count)
+        masked_mse(pred, target, &mask.masked, self.norm_pix_loss)
     }
 }

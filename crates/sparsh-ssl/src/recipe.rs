@@ -92,6 +92,8 @@ pub struct MaeSection {
     pub decoder_depth: usize,
     /// Decoder heads.
     pub decoder_heads: usize,
+    /// Per-patch standardized pixel targets (MAE's `norm_pix_loss`; official Sparsh: off).
+    pub norm_pix_loss: bool,
 }
 
 impl Default for MaeSection {
@@ -101,6 +103,7 @@ impl Default for MaeSection {
             decoder_dim: 512,
             decoder_depth: 8,
             decoder_heads: 16,
+            norm_pix_loss: false,
         }
     }
 }
@@ -139,6 +142,17 @@ pub struct DinoSection {
     pub ibot_weight: f64,
     /// Views.
     pub views: DinoViewConfig,
+}
+
+impl DinoSection {
+    /// Teacher temperature of step `step`: the official linear warm-up from `teacher_temp[0]`
+    /// to `teacher_temp[1]` over `teacher_temp_warmup_steps`, then held (DINO, Caron et al.
+    /// 2021, §3.1 and appendix; Sparsh `DINOModule.teacher_temp_schedule`).
+    pub fn teacher_temp_at(&self, step: usize) -> f64 {
+        let [start, end] = self.teacher_temp;
+        start
+            + (end - start) * (step as f64 / self.teacher_temp_warmup_steps.max(1) as f64).min(1.0)
+    }
 }
 
 impl Default for DinoSection {
@@ -244,13 +258,18 @@ impl Default for OptimSection {
 }
 
 impl OptimSection {
-    /// Learning rate at `step`: linear warm-up to `lr`, then cosine to `min_lr`.
+    /// Learning rate of step `step` (from 0): the official `WarmupCosineScheduler` with
+    /// `start_lr = 0`, as torch advances it (step `s` runs at count `k = s + 1`): `lr · k / W`
+    /// while `k < W` (`W = warmup_steps`), then
+    /// `min_lr + ½ (lr − min_lr) (1 + cos(π · min((k − W) / (steps − W), 1)))`, so the peak is
+    /// reached once (at `k = W`) and the last step runs at `min_lr`.
     pub fn lr_at(&self, step: usize) -> f64 {
-        if step < self.warmup_steps {
-            return self.lr * (step + 1) as f64 / self.warmup_steps as f64;
+        let k = step + 1;
+        if k < self.warmup_steps {
+            return self.lr * k as f64 / self.warmup_steps as f64;
         }
         let span = self.steps.saturating_sub(self.warmup_steps).max(1);
-        let t = ((step - self.warmup_steps) as f64 / span as f64).min(1.0);
+        let t = ((k - self.warmup_steps) as f64 / span as f64).min(1.0);
         self.min_lr + 0.5 * (self.lr - self.min_lr) * (1.0 + (std::f64::consts::PI * t).cos())
     }
 }
@@ -525,7 +544,8 @@ impl Recipe {
             .with_mask_ratio(self.mae.mask_ratio)
             .with_decoder_dim(self.mae.decoder_dim)
             .with_decoder_depth(self.mae.decoder_depth)
-            .with_decoder_heads(self.mae.decoder_heads))
+            .with_decoder_heads(self.mae.decoder_heads)
+            .with_norm_pix_loss(self.mae.norm_pix_loss))
     }
 
     /// DINO configuration.
@@ -657,8 +677,10 @@ mod tests {
         };
         assert!((o.lr_at(0) - 0.1).abs() < 1e-12);
         assert!((o.lr_at(9) - 1.0).abs() < 1e-12);
-        assert!((o.lr_at(10) - 1.0).abs() < 1e-12);
-        assert!((o.lr_at(55) - 0.5).abs() < 1e-12);
-        assert!(o.lr_at(100).abs() < 1e-12);
+        // the peak is held for one step only
+        assert!(o.lr_at(10) < 1.0);
+        assert!((o.lr_at(54) - 0.5).abs() < 1e-12);
+        assert!(o.lr_at(99).abs() < 1e-12);
+        assert!(o.lr_at(150).abs() < 1e-12);
     }
 }

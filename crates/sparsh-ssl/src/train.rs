@@ -148,13 +148,9 @@ impl Trainee {
             )),
             Trainee::Dino(_) => {
                 let views = dino_views(&mut rng, b, gh * gt, gw, &recipe.dino.views);
-                let d = &recipe.dino;
-                let teacher_temp = d.teacher_temp[0]
-                    + (d.teacher_temp[1] - d.teacher_temp[0])
-                        * (step as f64 / d.teacher_temp_warmup_steps.max(1) as f64).min(1.0);
                 StepDraw::Dino {
                     views,
-                    teacher_temp,
+                    teacher_temp: recipe.dino.teacher_temp_at(step),
                 }
             }
             Trainee::Jepa(_) => StepDraw::Jepa(if recipe.objective == ObjectiveKind::Vjepa {

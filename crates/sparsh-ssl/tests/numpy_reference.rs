@@ -1,6 +1,7 @@
 //! Parity of the encoder's forward pass with an independent NumPy ViT (`tests/numpy_vit.py`),
 //! weights passed through safetensors under the official key names. Skips, saying so, when
-//! `python3` with numpy is unavailable (`pip install numpy`).
+//! `python3` with numpy is unavailable (`pip install numpy`), unless `SPARSH_REQUIRE_PYTHON` is
+//! set, when it fails instead.
 
 use std::path::Path;
 use std::process::Command;
@@ -151,6 +152,10 @@ fn check(cfg: VitConfig, seed: u64) {
 #[test]
 fn encoder_matches_numpy_reference() {
     if !numpy_available() {
+        assert!(
+            std::env::var_os("SPARSH_REQUIRE_PYTHON").is_none(),
+            "SPARSH_REQUIRE_PYTHON is set but python3 with numpy is not available"
+        );
         eprintln!(
             "skipping encoder_matches_numpy_reference: python3 with numpy not found (pip install numpy)"
         );

@@ -1,6 +1,7 @@
 //! One training step lowers each objective's loss on a fixed batch (same masks / views, the
-//! EMA teacher and the DINO centre held fixed so only the trained weights move), and a step
-//! split into micro-batches has the whole batch's gradient.
+//! EMA teacher and the DINO centre held fixed so only the trained weights move), a step split
+//! into micro-batches has the whole batch's gradient, and the EMA teachers move by the scheduled
+//! momentum.
 
 use burn::module::{Module, ModuleVisitor, Param};
 use burn::optim::GradientsParams;
@@ -294,4 +295,91 @@ fn ema_copies_start_as_the_trained_weights() {
         weights(&|w| d.head.visit(w)),
         weights(&|w| d.teacher_head.visit(w))
     );
+}
+
+fn weights_of<M: Module>(m: &M) -> Vec<Vec<f32>> {
+    let mut w = Weights(Vec::new());
+    m.visit(&mut w);
+    w.0
+}
+
+/// Asserts `teacher = m · before + (1 − m) · after`, parameter by parameter, to 1e-6 of each
+/// parameter's largest value; returns the largest change of the teacher.
+fn assert_blend(teacher: &[Vec<f32>], before: &[Vec<f32>], after: &[Vec<f32>], m: f64) -> f64 {
+    assert_eq!(teacher.len(), before.len());
+    let mut moved = 0f64;
+    for ((t, b), a) in teacher.iter().zip(before).zip(after) {
+        let scale = b.iter().fold(0f64, |s, v| s.max(v.abs() as f64));
+        for ((&t, &b), &a) in t.iter().zip(b).zip(a) {
+            let expect = m * b as f64 + (1.0 - m) * a as f64;
+            assert!(
+                (t as f64 - expect).abs() <= 1e-6 * scale.max(1e-3),
+                "teacher {t} vs {expect} (before {b}, student after {a})"
+            );
+            moved = moved.max((t - b).abs() as f64);
+        }
+    }
+    moved
+}
+
+/// A training step with the EMA momentum ramping from 0.9 to 0.99 over 10 steps, at step 3
+/// (momentum 0.9 + 0.09 · 3/10 = 0.927): the teacher (I-JEPA target encoder; DINO teacher
+/// encoder and head), a copy of the student before the step, becomes 0.927 · the student before
+/// + 0.073 · the student after the optimizer step.
+#[test]
+fn ema_teacher_follows_the_student_by_the_scheduled_momentum() {
+    let momentum = 0.927;
+    let step_at_3 = |recipe: &Recipe| {
+        let device = Device::flex().autodiff();
+        let model = Trainee::init(recipe, &device).unwrap();
+        let mut optim = optimizer(recipe);
+        let mut batch = fixed_batch(recipe);
+        batch.step = 3;
+        let (after, _) = model
+            .clone()
+            .train_step(recipe, &mut optim, &batch, &device);
+        (model, after)
+    };
+    let jepa = recipe(
+        "ijepa",
+        "[jepa]\npredictor_dim = 32\npredictor_depth = 1\npredictor_heads = 4\nema = [0.9, 0.99]",
+    );
+    let (Trainee::Jepa(before), Trainee::Jepa(after)) = step_at_3(&jepa) else {
+        panic!("I-JEPA trainee")
+    };
+    assert_eq!(
+        weights_of(&before.encoder),
+        weights_of(&before.target_encoder)
+    );
+    let moved = assert_blend(
+        &weights_of(&after.target_encoder),
+        &weights_of(&before.encoder),
+        &weights_of(&after.encoder),
+        momentum,
+    );
+    assert!(moved > 1e-6, "the target encoder did not move ({moved})");
+
+    let dino = recipe(
+        "dino",
+        "num_registers = 1\n[dino]\nhead_hidden = 64\nhead_bottleneck = 16\nnum_prototypes = 128\n\
+         ema = [0.9, 0.99]\n[dino.views]\nnum_local = 2",
+    );
+    let (Trainee::Dino(before), Trainee::Dino(after)) = step_at_3(&dino) else {
+        panic!("DINO trainee")
+    };
+    for (teacher, student_before, student_after) in [
+        (
+            weights_of(&after.teacher_encoder),
+            weights_of(&before.encoder),
+            weights_of(&after.encoder),
+        ),
+        (
+            weights_of(&after.teacher_head),
+            weights_of(&before.head),
+            weights_of(&after.head),
+        ),
+    ] {
+        let moved = assert_blend(&teacher, &student_before, &student_after, momentum);
+        assert!(moved > 1e-6, "the DINO teacher did not move ({moved})");
+    }
 }
