@@ -14,7 +14,7 @@ use sparsh_data::{
 };
 use sparsh_optics::GpuContext;
 use sparsh_scene::{
-    DatasetSpec, FieldName, OutputSpec, Precision, Scene, SequenceScene, SolverKind,
+    DatasetSpec, FieldName, OutputSpec, Precision, Scene, SequenceScene, SolverKind, Validity,
 };
 use sparsh_sim::{Frame, Simulator};
 
@@ -135,8 +135,15 @@ pub fn render(
         write_atomic(path, &exr_bytes(&frame.fields, &spec)?)?;
     }
     let [fx, fy, fz] = frame.fields.force_n;
+    let validity = match frame.validity {
+        Validity::Ok => String::new(),
+        outside => format!(
+            "; warning: the {} rung is outside its validity: {outside}",
+            frame.solver.name()
+        ),
+    };
     eprintln!(
-        "{}: frame {index} ({}×{}), force [{fx:.3}, {fy:.3}, {fz:.3}] N, slip {}{}",
+        "{}: frame {index} ({}×{}), force [{fx:.3}, {fy:.3}, {fz:.3}] N, slip {}{}{validity}",
         out.display(),
         frame.image.width(),
         frame.image.height(),
@@ -200,7 +207,7 @@ pub struct GenerateReport {
     pub stages: StageTotals,
 }
 
-/// Seconds per pipeline stage, summed over frames.
+/// Seconds per pipeline stage, summed over frames, and the frames outside their rung's validity.
 #[derive(Debug, Default, Clone, Copy)]
 pub struct StageTotals {
     /// Gap-field ray casting.
@@ -211,6 +218,56 @@ pub struct StageTotals {
     pub optics_s: f64,
     /// PNG and EXR encoding and writing.
     pub writing_s: f64,
+    /// Frames outside their rung's validity.
+    pub outside_validity: OutsideValidity,
+}
+
+/// Frames outside their rung's validity: how many, and the first (lowest sequence, then frame).
+#[derive(Debug, Default, Clone, Copy)]
+pub struct OutsideValidity {
+    /// How many.
+    pub frames: usize,
+    /// The first: sequence, frame in the sequence, rung, what it passed, the scene's tolerance.
+    pub first: Option<(usize, usize, SolverKind, Validity, f64)>,
+}
+
+impl OutsideValidity {
+    fn note(&mut self, sequence: usize, frame: &Frame, tolerance: f64) {
+        self.frames += 1;
+        let here = (
+            sequence,
+            frame.target.index,
+            frame.solver,
+            frame.validity,
+            tolerance,
+        );
+        if self.first.is_none_or(|f| (f.0, f.1) > (here.0, here.1)) {
+            self.first = Some(here);
+        }
+    }
+
+    fn merge(&mut self, other: &OutsideValidity) {
+        self.frames += other.frames;
+        if let Some(o) = other.first
+            && self.first.is_none_or(|f| (f.0, f.1) > (o.0, o.1))
+        {
+            self.first = Some(o);
+        }
+    }
+
+    /// One warning line for a run of `frames` frames, or `None` if every frame was within its
+    /// rung's validity.
+    pub fn warning(&self, frames: usize) -> Option<String> {
+        let (sequence, frame, rung, validity, tolerance) = self.first?;
+        Some(format!(
+            "warning: {} of {frames} frames are outside their solver rung's validity at the \
+             {:.1} % force tolerance (first: sequence {sequence} frame {frame} on {}: {validity}); \
+             see `validity` in labels.jsonl",
+            self.frames,
+            100.0 * tolerance,
+            rung.name()
+        ))
+    }
 }
 
 impl StageTotals {
@@ -300,6 +357,9 @@ pub fn generate(scene_path: &Path, out: &Path, options: GenerateOptions) -> Resu
             "{frames} frames in {wall_s:.2} s: {:.1} frames/s (gap {gap:.0} %, contact {contact:.0} %, optics {optics:.0} %, writing {writing:.0} %)",
             frames as f64 / wall_s,
         );
+    }
+    if let Some(warning) = stages.outside_validity.warning(frames) {
+        eprintln!("{}: {warning}", out.display());
     }
     let complete = dataset
         .finish_if_complete(identity.sequences, manifest(&spec, identity))
@@ -403,6 +463,7 @@ fn write_sequence(
 ) -> Result<()> {
     let output = seq.scene.output.clone();
     let mm_per_px = seq.scene.sensor.mm_per_px;
+    let tolerance = seq.scene.tolerance;
     let mut sim = Simulator::on_device(seq.scene, gpu)?;
     let mut part = SequencePart {
         sequence: seq.sequence,
@@ -461,10 +522,19 @@ fn write_sequence(
             },
             pose_change_se2: [dp[0], dp[1], dr[2]],
             contact_area_mm2: frame.contact_area_mm2,
+            solver: Some(frame.solver.name().into()),
+            validity: Some(frame.validity.name().into()),
+            validity_value_bound: match frame.validity {
+                Validity::Ok => None,
+                Validity::Outside { value, bound, .. } => Some([value, bound]),
+            },
             mm_per_px: Some(mm_per_px),
             markers_px: frame.markers_px.clone(),
             background: background.clone(),
         });
+        if !frame.validity.is_ok() {
+            local.outside_validity.note(seq.sequence, &frame, tolerance);
+        }
         local.gap_s += frame.timings.gap_s;
         local.contact_s += frame.timings.contact_s;
         local.optics_s += frame.timings.optics_s;
@@ -478,6 +548,7 @@ fn write_sequence(
     t.contact_s += local.contact_s;
     t.optics_s += local.optics_s;
     t.writing_s += local.writing_s;
+    t.outside_validity.merge(&local.outside_validity);
     Ok(())
 }
 

@@ -228,6 +228,13 @@ enum Command {
         #[arg(long)]
         table: Option<PathBuf>,
     },
+    /// Print where each solver rung holds at a relative force tolerance (from the study's
+    /// compiled-in table): the limits a scene's `validity` policy checks every frame against.
+    Limits {
+        /// Relative force tolerance, in (0, 1).
+        #[arg(long, default_value_t = 0.02)]
+        tolerance: f64,
+    },
     /// Self-supervised pretraining of a ViT encoder (MAE, DINO, I-JEPA, V-JEPA) from a recipe.
     Pretrain {
         /// Training recipe (TOML), e.g. assets/ssl/mae_tiny_cpu.toml.
@@ -539,6 +546,7 @@ fn run(cli: Cli) -> Result<()> {
             validate::validate(&dir.unwrap_or_else(|| shipped("scenes/validation")), json)
         }
         Command::Study { out, quick, table } => study::study(&out, quick, table.as_deref()),
+        Command::Limits { tolerance } => study::limits(tolerance),
         Command::Pretrain {
             config,
             data,

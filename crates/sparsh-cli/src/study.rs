@@ -5,12 +5,13 @@
 use std::path::Path;
 use std::time::Instant;
 
-use anyhow::{Context, Result, anyhow};
+use anyhow::{Context, Result, anyhow, bail};
 use plotters::coord::Shift;
 use plotters::prelude::*;
 use plotters::style::FontStyle;
 use sparsh_contact::study::{Outcome, Study, StudyOptions, StudyPoint, run_study};
-use sparsh_scene::SolverKind;
+use sparsh_scene::auto::SolverTable;
+use sparsh_scene::{RungLimits, SolverKind};
 
 const FONT: &[u8] = include_bytes!("../../../assets/fonts/DejaVuSans.ttf");
 const SANS: &str = "sans-serif";
@@ -424,6 +425,33 @@ impl Chart for StabilityMap<'_> {
         }
         Ok(())
     }
+}
+
+/// `sparsh limits`: each rung's validity limits at `tolerance`, as a Markdown table on stdout.
+pub fn limits(tolerance: f64) -> Result<()> {
+    if !(tolerance > 0.0 && tolerance < 1.0) {
+        bail!("--tolerance: must be a relative force error in (0, 1), got {tolerance}");
+    }
+    let table = SolverTable::builtin();
+    println!("| rung | a/h up to | δ/h up to | best studied error |");
+    println!("|---|---|---|---|");
+    for rung in SolverKind::ALL {
+        let limits = RungLimits::of(table, rung, tolerance);
+        let depth = match limits.max_depth_over_h {
+            d if d.is_finite() => format!("{d}"),
+            _ => "not swept".into(),
+        };
+        let (a_over_h, depth) = match limits.max_a_over_h {
+            Some(a) => (format!("{a}"), depth),
+            None => ("nowhere".into(), "nowhere".into()),
+        };
+        println!(
+            "| {} | {a_over_h} | {depth} | {:.2} % |",
+            rung.name(),
+            100.0 * limits.best_rel_error
+        );
+    }
+    Ok(())
 }
 
 #[cfg(test)]

@@ -50,6 +50,19 @@ pub struct Label {
     pub pose_change_se2: [f64; 3],
     /// Contact area (mm²).
     pub contact_area_mm2: f64,
+    /// The solver rung that solved the frame; absent in datasets written before it was recorded.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub solver: Option<String>,
+    /// `ok` where the frame lies within its rung's validity at the scene's force tolerance, else
+    /// the limit it passed: `a_over_h` (contact radius over gel thickness), `depth_over_h`
+    /// (indentation depth over gel thickness) or `rung` (the rung meets the tolerance nowhere in
+    /// the study); absent in datasets written before it was recorded.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub validity: Option<String>,
+    /// The frame's value of the limit passed, and the rung's bound (for `rung`: the rung's best
+    /// studied relative force error and the tolerance); absent when `validity` is `ok`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub validity_value_bound: Option<[f64; 2]>,
     /// Pixel pitch of the frame (mm per pixel): converts the fields' displacements (mm) to
     /// image motion; absent in datasets written before it was recorded.
     #[serde(default, skip_serializing_if = "Option::is_none")]

@@ -13,7 +13,8 @@ use serde::Deserialize;
 
 use crate::{
     Anchor, Gel, IndenterSpec, Keyframe, LengthUnit, OpticsSpec, OutputSpec, Pattern, Scene,
-    SceneError, SensorSection, ShapeKind, SolverKind, check_margin, check_stride, one_cell,
+    SceneError, SensorSection, ShapeKind, SolverKind, ValidityPolicy, check_margin,
+    check_no_escalation, check_stride, check_tolerance, one_cell,
 };
 
 /// A number, or a `[min, max]` range drawn uniformly per sequence.
@@ -178,6 +179,9 @@ struct FamilyFile {
     frames_per_sequence: usize,
     #[serde(default)]
     solver: SolverKind,
+    tolerance: Option<f64>,
+    #[serde(default)]
+    validity: ValidityPolicy,
     #[serde(default = "one_cell")]
     mechanics_stride: usize,
     #[serde(default)]
@@ -355,6 +359,8 @@ pub fn sequence_seed(dataset_seed: u64, sequence: usize) -> u64 {
 
 impl FamilyFile {
     fn check(&self, path: &Path, at: &str) -> Result<(), SceneError> {
+        check_tolerance(path, &format!("{at}.tolerance"), self.tolerance)?;
+        check_no_escalation(path, &format!("{at}.validity"), self.validity)?;
         if self.sequences == 0 || self.frames_per_sequence == 0 {
             return Err(SceneError::invalid(
                 path,
@@ -538,6 +544,8 @@ impl FamilyFile {
             solver: self.solver,
             mechanics_stride: self.mechanics_stride,
             auto: None,
+            tolerance: check_tolerance(path, &format!("{at}.tolerance"), self.tolerance)?,
+            validity: self.validity,
             mechanics_margin_mm: self.mechanics_margin_mm,
             sensor,
             gel,

@@ -15,6 +15,7 @@ mod indenter;
 mod optics;
 mod sensor;
 mod trajectory;
+pub mod validity;
 
 use std::path::{Path, PathBuf};
 
@@ -32,6 +33,7 @@ pub use indenter::{
 pub use optics::{OpticsModel, OpticsSpec};
 pub use sensor::{Light, MarkerGrid, PRESETS, SensorConfig};
 pub use trajectory::{FrameTarget, Keyframe, MAX_FRAMES, Pose, sample};
+pub use validity::{RungLimits, Validity, ValidityPolicy};
 
 /// The gel's elastic and frictional properties (`[gel]`).
 #[derive(Debug, Clone, Copy, PartialEq, Deserialize)]
@@ -348,6 +350,8 @@ struct SceneFile {
     #[serde(default)]
     solver: SolverRequest,
     tolerance: Option<f64>,
+    #[serde(default)]
+    validity: ValidityPolicy,
     mechanics_stride: Option<usize>,
     #[serde(default)]
     mechanics_margin_mm: f64,
@@ -377,6 +381,11 @@ pub struct Scene {
     pub mechanics_stride: usize,
     /// What `solver = "auto"` chose and why; `None` for a named solver.
     pub auto: Option<AutoChoice>,
+    /// Relative force tolerance: what `solver = "auto"` chooses for, and where each rung's
+    /// validity stops ([`validity`]).
+    pub tolerance: f64,
+    /// What happens to a frame outside its rung's validity.
+    pub validity: ValidityPolicy,
     /// How far the gel, and the contact solve, extends beyond the camera's view on each side
     /// (mm; rounded up to whole mechanics cells).
     pub mechanics_margin_mm: f64,
@@ -474,14 +483,9 @@ impl Scene {
             ));
         }
         let indenter = file.indenter.build(path)?;
+        let tolerance = check_tolerance(path, "tolerance", file.tolerance)?;
         let fixed = |kind| {
-            if file.tolerance.is_some() {
-                return Err(SceneError::invalid(
-                    path,
-                    "tolerance",
-                    "is only read with solver = \"auto\"",
-                ));
-            }
+            check_no_escalation(path, "validity", file.validity)?;
             Ok((kind, file.mechanics_stride.unwrap_or(1), None))
         };
         let (solver, mechanics_stride, auto) = match file.solver {
@@ -495,14 +499,6 @@ impl Scene {
                         path,
                         "mechanics_stride",
                         "is chosen by solver = \"auto\"; remove it or name a solver",
-                    ));
-                }
-                let tolerance = file.tolerance.unwrap_or(auto::DEFAULT_TOLERANCE);
-                if !(tolerance > 0.0 && tolerance < 1.0) {
-                    return Err(SceneError::invalid(
-                        path,
-                        "tolerance",
-                        format!("must be a relative force error in (0, 1), got {tolerance}"),
                     ));
                 }
                 let frames = sample(&trajectory, sensor.fps);
@@ -540,6 +536,8 @@ impl Scene {
             solver,
             mechanics_stride,
             auto,
+            tolerance,
+            validity: file.validity,
             mechanics_margin_mm: file.mechanics_margin_mm,
             sensor,
             gel: file.gel,
@@ -598,6 +596,41 @@ pub(crate) fn check_margin(path: &Path, field: &str, margin_mm: f64) -> Result<(
             path,
             field,
             format!("must be in [0, 100] mm, got {margin_mm}"),
+        ));
+    }
+    Ok(())
+}
+
+/// The relative force tolerance a scene gives, or [`auto::DEFAULT_TOLERANCE`]: in (0, 1).
+pub(crate) fn check_tolerance(
+    path: &Path,
+    field: &str,
+    tolerance: Option<f64>,
+) -> Result<f64, SceneError> {
+    let tolerance = tolerance.unwrap_or(auto::DEFAULT_TOLERANCE);
+    if tolerance > 0.0 && tolerance < 1.0 {
+        Ok(tolerance)
+    } else {
+        Err(SceneError::invalid(
+            path,
+            field,
+            format!("must be a relative force error in (0, 1), got {tolerance}"),
+        ))
+    }
+}
+
+/// `validity = "escalate"` needs `solver = "auto"`: it climbs the ladder from the rung chosen.
+pub(crate) fn check_no_escalation(
+    path: &Path,
+    field: &str,
+    policy: ValidityPolicy,
+) -> Result<(), SceneError> {
+    if policy == ValidityPolicy::Escalate {
+        return Err(SceneError::invalid(
+            path,
+            field,
+            "\"escalate\" climbs the solver ladder from the rung solver = \"auto\" chose; with a \
+             named solver use \"warn\" or \"error\"",
         ));
     }
     Ok(())

@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 use glam::Vec3;
 use proptest::prelude::*;
 use proptest::test_runner::RngSeed;
-use sparsh_scene::{Indenter, Scene, SceneError, TriMesh};
+use sparsh_scene::{Indenter, Scene, SceneError, TriMesh, ValidityPolicy};
 
 const BASE: &str = r#"
 seed = 3
@@ -411,11 +411,29 @@ fn every_preset_resolves_and_modes_share_the_view() {
 #[test]
 fn auto_solver_keys_are_checked() {
     let auto = |extra: &str| BASE.replace("seed = 3", &format!("seed = 3\n{extra}"));
-    let line = error_of(&auto("tolerance = 0.02"));
+    // A named solver reads the tolerance for its validity check; escalation needs `auto`.
+    let named = Scene::parse(Path::new("t.toml"), auto("tolerance = 0.05")).unwrap();
+    assert_eq!(
+        (named.tolerance, named.validity),
+        (0.05, ValidityPolicy::Warn)
+    );
+    let line = error_of(&auto("validity = \"escalate\""));
     assert!(
-        line.contains("tolerance") && line.contains("auto"),
+        line.contains("validity") && line.contains("auto") && !line.contains('\n'),
         "{line}"
     );
+    let line = error_of(&auto("validity = \"sometimes\""));
+    assert!(
+        line.contains(":3:") && line.contains("`sometimes`") && line.contains("escalate"),
+        "{line}"
+    );
+    for bad in ["0.0", "1.5"] {
+        let line = error_of(&auto(&format!("tolerance = {bad}")));
+        assert!(
+            line.contains("tolerance") && line.contains("(0, 1)"),
+            "{line}"
+        );
+    }
     let line = error_of(&auto("solver = \"auto\"\nmechanics_stride = 2"));
     assert!(
         line.contains("mechanics_stride") && line.contains("auto"),

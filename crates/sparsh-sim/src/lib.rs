@@ -11,7 +11,10 @@ use sparsh_contact::{
     solver_for,
 };
 use sparsh_optics::{GpuContext, ImageFormation, OpticsError, Surface};
-use sparsh_scene::{FrameTarget, GapField, Grid, Pose, Scene};
+use sparsh_scene::auto::SolverTable;
+use sparsh_scene::{
+    FrameTarget, GapField, Grid, Pose, RungLimits, Scene, SolverKind, Validity, ValidityPolicy,
+};
 
 /// Why a frame could not be simulated.
 #[derive(Debug, thiserror::Error)]
@@ -24,6 +27,23 @@ pub enum SimError {
         /// Solver error.
         #[source]
         source: ContactError,
+    },
+    /// A frame outside its rung's validity under `validity = "error"`.
+    #[error(
+        "frame {frame}: the {} rung is outside its validity: {validity} at the {:.1} % force \
+         tolerance (validity = \"error\"; \"warn\" records it in the labels instead)",
+        rung.name(),
+        100.0 * tolerance
+    )]
+    OutsideValidity {
+        /// Frame index.
+        frame: usize,
+        /// The rung that solved it.
+        rung: SolverKind,
+        /// Which limit it passed.
+        validity: Validity,
+        /// The scene's relative force tolerance.
+        tolerance: f64,
     },
     /// The optics could not be set up.
     #[error(transparent)]
@@ -48,6 +68,11 @@ pub struct Frame {
     pub slip_state: SlipState,
     /// Area of the whole contact (mm², also beyond the view).
     pub contact_area_mm2: f64,
+    /// The rung that solved the frame (under `validity = "escalate"`, possibly above the
+    /// scene's).
+    pub solver: SolverKind,
+    /// Whether the frame lies where that rung holds, at the scene's tolerance.
+    pub validity: Validity,
     /// Wall-clock time of each stage (not part of any output).
     pub timings: StageTimes,
 }
@@ -63,10 +88,20 @@ pub struct StageTimes {
     pub optics_s: f64,
 }
 
+/// One frame's contact, solved.
+struct Solved {
+    gap: GapField,
+    fields: Fields,
+    pose: Pose,
+    /// Seconds spent casting the gap field.
+    gap_s: f64,
+}
+
 /// Runs one scene's trajectory frame by frame.
 pub struct Simulator {
     scene: Scene,
     targets: Vec<FrameTarget>,
+    rung: SolverKind,
     solver: Box<dyn ContactSolver>,
     renderer: ImageFormation,
     previous_pose: Option<Pose>,
@@ -85,6 +120,7 @@ impl Simulator {
         let renderer = ImageFormation::new(&scene.sensor, &scene.optics, scene.seed, gpu)?;
         Ok(Simulator {
             targets: scene.frames(),
+            rung: scene.solver,
             scene,
             solver,
             renderer,
@@ -115,15 +151,22 @@ impl Simulator {
         Some(self.simulate(target))
     }
 
-    fn simulate(&mut self, target: FrameTarget) -> Result<Frame, SimError> {
-        let grid = self.scene.mechanics_grid();
+    /// Casts the gap field at `target` and solves its contact with `solver`, after the frame
+    /// posed at `previous`.
+    fn solve_contact(
+        scene: &Scene,
+        solver: &mut dyn ContactSolver,
+        target: &FrameTarget,
+        previous: Option<&Pose>,
+    ) -> Result<Solved, SimError> {
+        let grid = scene.mechanics_grid();
         let start = Instant::now();
-        let gap = GapField::cast(&self.scene.indenter, &target.pose, grid);
-        let rigid_shift_mm = match &self.previous_pose {
+        let gap = GapField::cast(&scene.indenter, &target.pose, grid);
+        let gap_s = start.elapsed().as_secs_f64();
+        let rigid_shift_mm = match previous {
             Some(previous) => rigid_shift_mm(previous, &target.pose, &gap),
             None => vec![[0.0; 2]; grid.len()],
         };
-        let gap_done = Instant::now();
         let input = ContactInput {
             gap: &gap,
             normal: target
@@ -131,14 +174,124 @@ impl Simulator {
                 .map_or(NormalControl::Approach, NormalControl::Force),
             rigid_shift_mm: &rigid_shift_mm,
         };
-        let fields = self
-            .solver
-            .solve(&input)
-            .map_err(|source| SimError::Contact {
-                frame: target.index,
-                source,
-            })?;
+        let fields = solver.solve(&input).map_err(|source| SimError::Contact {
+            frame: target.index,
+            source,
+        })?;
+        let mut pose = target.pose;
+        pose.position_mm.z -= fields.approach_offset_mm;
+        Ok(Solved {
+            gap,
+            fields,
+            pose,
+            gap_s,
+        })
+    }
+
+    /// Contact radius over gel thickness (the radius of a circle of the contact's area) and
+    /// indentation depth over gel thickness (the deepest rigid penetration, with the approach
+    /// found under load control) of a solved frame.
+    fn frame_ratios(&self, solved: &Solved) -> (f64, f64) {
+        let (gap, fields) = (&solved.gap, &solved.fields);
+        let h = self.scene.gel.thickness_mm;
+        let a = (fields.contact_area_mm2() / std::f64::consts::PI).sqrt();
+        let penetration = gap
+            .gap_mm
+            .iter()
+            .filter(|g| g.is_finite())
+            .fold(0.0f64, |m, &g| m.max(-g));
+        (
+            a / h,
+            (penetration + fields.approach_offset_mm).max(0.0) / h,
+        )
+    }
+
+    fn validity(&self, solved: &Solved) -> Validity {
+        let (a_over_h, depth_over_h) = self.frame_ratios(solved);
+        RungLimits::of(SolverTable::builtin(), self.rung, self.scene.tolerance).check(
+            solved.fields.contact.contains(&true),
+            a_over_h,
+            depth_over_h,
+        )
+    }
+
+    /// `validity = "escalate"`: the lowest rung above the current one whose limits hold at this
+    /// frame's contact (the top rung if none does), with its path history rebuilt by solving
+    /// the trajectory's earlier frames on it. Returns the frame solved on that rung, or `None`
+    /// at the top of the ladder.
+    fn escalate(
+        &mut self,
+        target: &FrameTarget,
+        solved: &Solved,
+    ) -> Result<Option<Solved>, SimError> {
+        let (a_over_h, depth_over_h) = self.frame_ratios(solved);
+        let higher: Vec<SolverKind> = SolverKind::ALL
+            .into_iter()
+            .skip_while(|&k| k != self.rung)
+            .skip(1)
+            .collect();
+        let Some(&top) = higher.last() else {
+            return Ok(None);
+        };
+        let rung = higher
+            .into_iter()
+            .find(|&k| {
+                RungLimits::of(SolverTable::builtin(), k, self.scene.tolerance)
+                    .check(true, a_over_h, depth_over_h)
+                    .is_ok()
+            })
+            .unwrap_or(top);
+        let mut solver = solver_for(rung, &self.scene.gel, self.scene.mechanics_grid());
+        let mut previous = None;
+        for earlier in &self.targets[..target.index] {
+            let solved =
+                Simulator::solve_contact(&self.scene, solver.as_mut(), earlier, previous.as_ref())?;
+            previous = Some(solved.pose);
+        }
+        let solved =
+            Simulator::solve_contact(&self.scene, solver.as_mut(), target, previous.as_ref())?;
+        self.rung = rung;
+        self.solver = solver;
+        Ok(Some(solved))
+    }
+
+    fn simulate(&mut self, target: FrameTarget) -> Result<Frame, SimError> {
+        let start = Instant::now();
+        let mut solved = Simulator::solve_contact(
+            &self.scene,
+            self.solver.as_mut(),
+            &target,
+            self.previous_pose.as_ref(),
+        )?;
+        let mut validity = self.validity(&solved);
+        if !validity.is_ok() {
+            match self.scene.validity {
+                ValidityPolicy::Error => {
+                    return Err(SimError::OutsideValidity {
+                        frame: target.index,
+                        rung: self.rung,
+                        validity,
+                        tolerance: self.scene.tolerance,
+                    });
+                }
+                ValidityPolicy::Warn => {}
+                ValidityPolicy::Escalate => {
+                    while !validity.is_ok()
+                        && let Some(higher) = self.escalate(&target, &solved)?
+                    {
+                        solved = higher;
+                        validity = self.validity(&solved);
+                    }
+                }
+            }
+        }
         let contact_done = Instant::now();
+        let Solved {
+            fields,
+            pose,
+            gap_s,
+            ..
+        } = solved;
         let slip_state = fields.slip_state();
         let contact_area_mm2 = fields.contact_area_mm2();
         let fields = crop(
@@ -147,8 +300,6 @@ impl Simulator {
             self.scene.view_grid(),
         );
         let grid = fields.grid;
-        let mut pose = target.pose;
-        pose.position_mm.z -= fields.approach_offset_mm;
         self.previous_pose = Some(pose);
         let image_grid = self.scene.grid();
         let render = |surface: &Surface| {
@@ -176,8 +327,8 @@ impl Simulator {
         };
         let image = image?;
         let timings = StageTimes {
-            gap_s: (gap_done - start).as_secs_f64(),
-            contact_s: (contact_done - gap_done).as_secs_f64(),
+            gap_s,
+            contact_s: (contact_done - start).as_secs_f64() - gap_s,
             optics_s: contact_done.elapsed().as_secs_f64(),
         };
         Ok(Frame {
@@ -188,6 +339,8 @@ impl Simulator {
             fields,
             slip_state,
             contact_area_mm2,
+            solver: self.rung,
+            validity,
             timings,
         })
     }

@@ -1,0 +1,96 @@
+//! Each rung's validity limits (`sparsh_scene::validity`, read from the compiled-in solver
+//! table) against the study's stability map and against the analytic layer effect.
+
+use sparsh_contact::reference::bonded_layer_force_factor;
+use sparsh_scene::auto::SolverTable;
+use sparsh_scene::{RungLimits, SolverKind};
+
+/// The half-space rung ignores the gel's bottom, so on an incompressible bonded layer it misses
+/// the force by 1 − F_Hertz/F_layer (Garcia & Garcia 2018 up to a/h = 0.5; the exact layer
+/// solution at 1). Its a/h limit at each tolerance must be the last studied a/h that this
+/// analytic error allows, within the finest grid's own error (0.5 %).
+#[test]
+fn the_half_space_limit_is_the_layer_effect() {
+    let table = SolverTable::builtin();
+    let mut studied: Vec<f64> = table
+        .rows
+        .iter()
+        .filter(|r| r.rung == SolverKind::Halfspace && r.depth_over_h == 0.0)
+        .map(|r| r.a_over_h)
+        .collect();
+    studied.sort_by(f64::total_cmp);
+    studied.dedup();
+    let layer_error = |a_over_h: f64| 1.0 - 1.0 / bonded_layer_force_factor(a_over_h).unwrap();
+    let grid_error = 0.005;
+    for tolerance in [0.01, 0.02, 0.05, 0.1, 0.3] {
+        let limits = RungLimits::of(table, SolverKind::Halfspace, tolerance);
+        let limit = limits
+            .max_a_over_h
+            .expect("meets loose tolerances somewhere");
+        assert!(
+            layer_error(limit) <= tolerance + grid_error,
+            "tolerance {tolerance}: a/h {limit} misses by {}",
+            layer_error(limit)
+        );
+        if let Some(&next) = studied.iter().find(|&&a| a > limit) {
+            assert!(
+                layer_error(next) > tolerance - grid_error,
+                "tolerance {tolerance}: a/h {next} meets it ({}) yet is past the limit {limit}",
+                layer_error(next)
+            );
+        }
+    }
+}
+
+/// Each rung's depth limit at the study's pass mark (2 %) is the deepest swept δ/h up to which
+/// the stability map passes every swept depth (the sweep's shallowest depth stands for the
+/// small-strain regime, so a rung's limit is never shallower than it), and the geometric rung
+/// has no a/h range at all.
+#[test]
+fn depth_limits_match_the_stability_map() {
+    let path = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../../assets/readme/study/stability.csv"
+    );
+    let mut reader = csv::Reader::from_path(path).unwrap();
+    let headers = reader.headers().unwrap().clone();
+    let column = |name: &str| headers.iter().position(|h| h == name).unwrap();
+    let (sweep, value, rung, outcome) = (
+        column("sweep"),
+        column("value"),
+        column("rung"),
+        column("outcome"),
+    );
+    let mut map: Vec<(SolverKind, f64, bool)> = Vec::new();
+    for record in reader.records() {
+        let record = record.unwrap();
+        if &record[sweep] != "depth_over_thickness" {
+            continue;
+        }
+        let depth: f64 = record[value].trim_start_matches("δ/h ").parse().unwrap();
+        map.push((
+            record[rung].parse().unwrap(),
+            depth,
+            &record[outcome] == "ok",
+        ));
+    }
+    for kind in SolverKind::ALL {
+        let mut sweep: Vec<(f64, bool)> = map
+            .iter()
+            .filter(|m| m.0 == kind)
+            .map(|m| (m.1, m.2))
+            .collect();
+        sweep.sort_by(|a, b| a.0.total_cmp(&b.0));
+        assert!(sweep.len() >= 6, "{kind:?}: {} swept depths", sweep.len());
+        let from_map = sweep
+            .iter()
+            .take_while(|s| s.1)
+            .last()
+            .map_or(sweep[0].0, |s| s.0);
+        let limits = RungLimits::of(SolverTable::builtin(), kind, 0.02);
+        assert_eq!(limits.max_depth_over_h, from_map, "{kind:?}");
+    }
+    let geometric = RungLimits::of(SolverTable::builtin(), SolverKind::Geometric, 0.02);
+    assert_eq!(geometric.max_a_over_h, None);
+    assert_eq!(geometric.check(true, 0.1, 0.0).name(), "rung");
+}

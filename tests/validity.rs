@@ -1,0 +1,126 @@
+//! Frames outside their solver rung's validity, end to end: `generate` stops on the first one
+//! under `validity = "error"`, and under `warn` counts them in one line and labels each frame.
+
+mod common;
+use common::{assert_user_error, generate, stderr, write_scene};
+
+/// A 2 mm sphere pressed 0.1 mm deeper each frame into a 2 mm gel (frames 0…9) on the layered
+/// rung, whose depth limit at the 2 % default tolerance is δ/h = 0.3 (the study's depth sweep).
+fn deep_press(policy: &str) -> String {
+    format!(
+        r#"
+solver = "layered"
+validity = "{policy}"
+[sensor]
+preset = "digit"
+width_px = 64
+height_px = 48
+mm_per_px = 0.12
+fps = 10.0
+[gel]
+thickness_mm = 2.0
+[indenter]
+shape = "sphere"
+radius_mm = 2.0
+[[trajectory]]
+time_s = 0.0
+position_mm = [0.0, 0.0, 0.0]
+[[trajectory]]
+time_s = 1.0
+position_mm = [0.0, 0.0, -1.0]
+"#
+    )
+}
+
+#[test]
+fn error_policy_stops_on_one_line_naming_the_frame() {
+    let tmp = tempfile::tempdir().unwrap();
+    let scene = write_scene(tmp.path(), &deep_press("error"));
+    let out = generate(&scene, &tmp.path().join("ds"), &["--quiet"]);
+    // δ/h = 0.05 k on the grid's deepest cell (a hair shallower): frame 7 is the first past 0.3
+    assert_user_error(&out, "frame 7: the layered rung is outside its validity");
+    assert!(stderr(&out).contains("indentation depth over gel thickness 0.3"));
+    assert!(!tmp.path().join("ds/manifest.json").exists());
+}
+
+#[test]
+fn warn_policy_counts_and_labels_every_frame() {
+    let tmp = tempfile::tempdir().unwrap();
+    let scene = write_scene(tmp.path(), &deep_press("warn"));
+    let ds = tmp.path().join("ds");
+    let out = generate(&scene, &ds, &["--quiet"]);
+    let err = stderr(&out);
+    assert!(out.status.success(), "{err}");
+    let warning: Vec<&str> = err.lines().filter(|l| l.contains("warning")).collect();
+    assert_eq!(warning.len(), 1, "{err}");
+    assert!(
+        warning[0].contains("3 of 10 frames") && warning[0].contains("sequence 0 frame 7"),
+        "{err}"
+    );
+    let labels = std::fs::read_to_string(ds.join("labels.jsonl")).unwrap();
+    for (k, line) in labels.lines().enumerate() {
+        let row: serde_json::Value = serde_json::from_str(line).unwrap();
+        assert_eq!(row["solver"], "layered");
+        if k >= 7 {
+            assert_eq!(row["validity"], "depth_over_h", "frame {k}");
+            let [value, bound] = [0, 1].map(|i| row["validity_value_bound"][i].as_f64().unwrap());
+            assert!(
+                (value - 0.05 * k as f64).abs() < 1e-3 && bound == 0.3,
+                "{row}"
+            );
+        } else {
+            assert_eq!(row["validity"], "ok", "frame {k}");
+            assert!(row.get("validity_value_bound").is_none());
+        }
+    }
+}
+
+#[test]
+fn families_read_tolerance_and_validity() {
+    let tmp = tempfile::tempdir().unwrap();
+    let family = |keys: &str| {
+        format!(
+            r#"
+[[family]]
+name = "presses"
+sequences = 1
+frames_per_sequence = 2
+solver = "geometric"
+{keys}
+[family.sensor]
+preset = "digit"
+width_px = 40
+height_px = 30
+mm_per_px = 0.2
+[[family.indenters]]
+shape = "sphere"
+radius_mm = 3.0
+[family.motion]
+kind = "press_slide"
+depth_mm = 0.5
+"#
+        )
+    };
+    let scene = write_scene(tmp.path(), &family("validity = \"escalate\""));
+    assert_user_error(
+        &generate(&scene, &tmp.path().join("a"), &[]),
+        "family[0].validity",
+    );
+    let scene = write_scene(tmp.path(), &family("tolerance = 2.0"));
+    assert_user_error(
+        &generate(&scene, &tmp.path().join("b"), &[]),
+        "family[0].tolerance",
+    );
+    // the geometric rung makes no force claim: every frame in contact is outside
+    let scene = write_scene(
+        tmp.path(),
+        &family("tolerance = 0.05\nvalidity = \"error\""),
+    );
+    let out = generate(&scene, &tmp.path().join("c"), &["--quiet"]);
+    assert_user_error(&out, "geometric rung is outside its validity");
+    assert!(
+        stderr(&out).contains("meets the 5.0 % force tolerance nowhere"),
+        "{}",
+        stderr(&out)
+    );
+}
