@@ -385,11 +385,18 @@ fn main() -> ExitCode {
 
 /// An error and its causes on one line, `outer: cause: …`, leaving out a cause whose text the
 /// line already holds (an error that prints its source in its own message and also chains it
-/// would otherwise say it twice).
+/// would otherwise say it twice); a cause written on several lines (some decoders' errors) is
+/// joined with spaces.
 fn one_line(err: &anyhow::Error) -> String {
     let mut line = String::new();
     for cause in err.chain() {
-        let text = cause.to_string();
+        let text = cause
+            .to_string()
+            .lines()
+            .map(str::trim)
+            .filter(|l| !l.is_empty())
+            .collect::<Vec<_>>()
+            .join(" ");
         if text.is_empty() || line.contains(&text) {
             continue;
         }

@@ -47,13 +47,31 @@ pub fn write_exr_channels(
     Ok(bytes.into_inner())
 }
 
+/// The most samples (width × height × channels) [`read_exr_channels`] accepts in a layer: eight
+/// fields of the largest sensor (8192 × 8192 pixels), 2 GiB as f32.
+pub const MAX_EXR_SAMPLES: usize = 1 << 29;
+
 /// Reads every channel of the first layer of an EXR file as f32: (name, samples) sorted by name,
-/// with the image size.
+/// with the image size. A header whose layers hold more than [`MAX_EXR_SAMPLES`] samples is
+/// refused before any sample is allocated.
 pub fn read_exr_channels(path: &Path) -> std::result::Result<ExrChannels, DataError> {
-    let image = read_first_flat_layer_from_file(path).map_err(|e| DataError::Format {
+    let bad = |message: String| DataError::Format {
         path: path.to_path_buf(),
-        message: e.to_string(),
-    })?;
+        message,
+    };
+    let meta = MetaData::read_from_file(path, false).map_err(|e| bad(e.to_string()))?;
+    for header in &meta.headers {
+        let (w, h) = (header.layer_size.width(), header.layer_size.height());
+        let channels = header.channels.list.len();
+        let samples = w.checked_mul(h).and_then(|n| n.checked_mul(channels));
+        if samples.is_none_or(|n| n > MAX_EXR_SAMPLES) {
+            return Err(bad(format!(
+                "{w}×{h} pixels × {channels} channels: more than the {MAX_EXR_SAMPLES} samples a \
+                 field file may hold"
+            )));
+        }
+    }
+    let image = read_first_flat_layer_from_file(path).map_err(|e| bad(e.to_string()))?;
     let size = image.layer_data.size;
     let channels = image
         .layer_data

@@ -21,7 +21,7 @@ mod exr_io;
 pub mod sparsh_pkl;
 mod writer;
 
-pub use exr_io::{ExrChannels, read_exr_channels, write_exr_channels};
+pub use exr_io::{ExrChannels, MAX_EXR_SAMPLES, read_exr_channels, write_exr_channels};
 pub use writer::{
     Dataset, Identity, Label, Manifest, OpenMode, PoseLabel, Problem, SequencePart, ShardLayout,
     check_part, encode_png, read_identity, read_manifest, read_shard_layout, verify, write_atomic,

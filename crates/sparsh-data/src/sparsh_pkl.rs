@@ -242,6 +242,9 @@ fn write_pickle(path: &Path, value: &Value) -> Result<(), DataError> {
     write_atomic(path, &bytes)
 }
 
+/// Reads a whole pickle file. Memory is bounded by the file's size: a length prefix reaching past
+/// the end of the file is refused before its bytes are allocated, and each memo entry is
+/// expanded at most as many times as the file refers to it.
 fn read_pickle(path: &Path) -> Result<Value, DataError> {
     let bytes = std::fs::read(path).map_err(io_err(path))?;
     serde_pickle::value_from_reader(

@@ -370,27 +370,52 @@ fn load_obj(path: &Path) -> Result<TriMesh, String> {
                 .mesh
                 .indices
                 .chunks_exact(3)
-                .map(|t| [base + t[0], base + t[1], base + t[2]]),
+                .map(|t| [t[0], t[1], t[2]].map(|i| base.saturating_add(i))),
         );
     }
     Ok(mesh)
 }
 
 fn load_gltf(path: &Path) -> Result<TriMesh, String> {
-    let gltf = gltf::Gltf::open(path).map_err(|e| format!("glTF: {e}"))?;
-    let buffers = gltf::import_buffers(&gltf.document, path.parent(), gltf.blob.clone())
+    let bytes = std::fs::read(path).map_err(|e| format!("glTF: {e}"))?;
+    let gltf::Gltf { document, blob } =
+        gltf::Gltf::from_slice_without_validation(&bytes).map_err(|e| format!("glTF: {e}"))?;
+    let json = document.into_json();
+    // gltf-json's validation indexes a primitive's POSITION accessor without checking it exists.
+    let positions = gltf::json::validation::Checked::Valid(gltf::Semantic::Positions);
+    for (m, mesh) in json.meshes.iter().enumerate() {
+        for (p, prim) in mesh.primitives.iter().enumerate() {
+            if let Some(a) = prim.attributes.get(&positions)
+                && a.value() >= json.accessors.len()
+            {
+                return Err(format!(
+                    "glTF: meshes[{m}].primitives[{p}]: POSITION accessor {} does not exist",
+                    a.value()
+                ));
+            }
+        }
+    }
+    let document = gltf::Document::from_json(json).map_err(|e| format!("glTF: {e}"))?;
+    let buffers = gltf::import_buffers(&document, path.parent(), blob)
         .map_err(|e| format!("glTF buffers: {e}"))?;
     let mut mesh = TriMesh {
         vertices: Vec::new(),
         triangles: Vec::new(),
     };
-    let scene = gltf
-        .document
+    let scene = document
         .default_scene()
-        .or_else(|| gltf.document.scenes().next())
+        .or_else(|| document.scenes().next())
         .ok_or("glTF: no scene")?;
     let mut stack: Vec<(gltf::Node, Mat4)> = scene.nodes().map(|n| (n, Mat4::IDENTITY)).collect();
+    // Nodes form a tree: a node reached twice (a cycle or a shared child) is refused.
+    let mut reached = vec![false; document.nodes().len()];
     while let Some((node, parent)) = stack.pop() {
+        if std::mem::replace(&mut reached[node.index()], true) {
+            return Err(format!(
+                "glTF: node {} is reached twice (nodes must form a tree)",
+                node.index()
+            ));
+        }
         let world = parent * Mat4::from_cols_array_2d(&node.transform().matrix());
         if let Some(m) = node.mesh() {
             for prim in m.primitives() {
@@ -402,21 +427,33 @@ fn load_gltf(path: &Path) -> Result<TriMesh, String> {
                 }
                 let reader = prim.reader(|b| buffers.get(b.index()).map(|d| &d.0[..]));
                 let base = mesh.vertices.len() as u32;
-                let positions = reader
-                    .read_positions()
-                    .ok_or("glTF: primitive without positions")?;
+                // The reader yields nothing for an accessor that reaches past its buffer.
+                let unreadable = |a: gltf::Accessor, what: &str| {
+                    format!(
+                        "glTF: {what} accessor {} ({} items) reaches past its buffer",
+                        a.index(),
+                        a.count()
+                    )
+                };
+                let positions = reader.read_positions().ok_or_else(|| {
+                    match prim.get(&gltf::Semantic::Positions) {
+                        Some(a) => unreadable(a, "POSITION"),
+                        None => "glTF: primitive without positions".into(),
+                    }
+                })?;
                 mesh.vertices
                     .extend(positions.map(|p| world.transform_point3(Vec3::from(p))));
                 let count = mesh.vertices.len() as u32 - base;
-                match reader.read_indices() {
-                    Some(ix) => {
+                match (reader.read_indices(), prim.indices()) {
+                    (None, Some(a)) => return Err(unreadable(a, "index")),
+                    (Some(ix), _) => {
                         let ix: Vec<u32> = ix.into_u32().collect();
                         mesh.triangles.extend(
                             ix.chunks_exact(3)
-                                .map(|t| [base + t[0], base + t[1], base + t[2]]),
+                                .map(|t| [t[0], t[1], t[2]].map(|i| base.saturating_add(i))),
                         );
                     }
-                    None => mesh.triangles.extend(
+                    (None, None) => mesh.triangles.extend(
                         (0..count / 3).map(|k| [base + 3 * k, base + 3 * k + 1, base + 3 * k + 2]),
                     ),
                 }

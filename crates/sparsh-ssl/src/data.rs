@@ -111,10 +111,20 @@ pub fn preprocess(img: &RgbImage, bg: &RgbImage, size: [usize; 2]) -> Result<Vec
     Ok(out)
 }
 
+/// Decodes a PNG or JPEG frame under the `image` crate's default limits: a header whose image
+/// would take more than 512 MiB is refused before the pixels are allocated. The decoder's error
+/// (the JPEG decoder's can span lines) is given on one line.
 fn decode(bytes: &[u8], what: &Path) -> Result<RgbImage, Error> {
     image::load_from_memory(bytes)
         .map(|i| i.to_rgb8())
-        .map_err(|e| Error::file(what, format!("cannot decode image: {e}")))
+        .map_err(|e| {
+            let reason: Vec<String> = e
+                .to_string()
+                .lines()
+                .map(|l| l.trim().to_string())
+                .collect();
+            Error::file(what, format!("cannot decode image: {}", reason.join(" ")))
+        })
 }
 
 fn read_image(path: &Path) -> Result<RgbImage, Error> {

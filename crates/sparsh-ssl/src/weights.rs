@@ -268,6 +268,9 @@ const PREFIXES: [&str; 6] = [
 
 /// Loads encoder weights from a safetensors file with official key names (see the module docs).
 /// `prefix` selects the sub-model (e.g. `"teacher_encoder."`); `None` finds it.
+/// Memory is bounded by the file's size and the encoder's own tensors: a header whose shapes or
+/// offsets do not fit the file is refused, and each tensor's shape is checked before its data is
+/// read.
 pub fn load_encoder(mut vit: Vit, path: &Path, prefix: Option<&str>) -> Result<Vit, Error> {
     let bytes = std::fs::read(path).map_err(|e| Error::file(path, e))?;
     let st = SafeTensors::deserialize(&bytes)
