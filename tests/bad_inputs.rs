@@ -14,7 +14,7 @@ mod encoder;
 fn render_error(dir: &Path, name: &str, out: &Path) -> String {
     let run = Command::new(env!("CARGO_BIN_EXE_sparsh"))
         .current_dir(dir)
-        .args(["render", name, "--out"])
+        .args(["render", name, "--png"])
         .arg(out)
         .output()
         .expect("sparsh runs");

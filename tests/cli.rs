@@ -188,7 +188,7 @@ fn render_writes_one_frame_and_its_fields() {
         scene.to_str().unwrap(),
         "--frame",
         "7",
-        "--out",
+        "--png",
         png.to_str().unwrap(),
         "--fields",
         exr.to_str().unwrap(),
@@ -212,7 +212,7 @@ fn render_writes_one_frame_and_its_fields() {
         scene.to_str().unwrap(),
         "--frame",
         "12",
-        "--out",
+        "--out", // the older name of --png
         png.to_str().unwrap(),
     ]);
     assert_user_error(&out, "out of range");
@@ -583,6 +583,25 @@ fn calibration_commands_reject_bad_input_on_one_line() {
         &run(&["--pixmm", "0.03", "--shadows", "--sensor", "nope"]),
         "unknown preset nope",
     );
+    // Without --pixmm the pitch is the params.json's beside the pack (Taxim's layout).
+    assert_user_error(
+        &run(&[]),
+        "--pixmm not given and no params.json beside the pack",
+    );
+    let params = tmp.path().join("params.json");
+    std::fs::write(&params, r#"{"sensor": {"pixmm": -1}}"#).unwrap();
+    assert_user_error(&run(&[]), "params.json: sensor.pixmm must be > 0, got -1");
+    std::fs::write(&params, r#"{"sensor": {"pixmm": 0.03}}"#).unwrap();
+    let res = run(&[]);
+    let err = stderr(&res);
+    assert!(!res.status.success(), "{err}");
+    let lines: Vec<&str> = err.lines().collect();
+    assert!(
+        lines.len() == 2
+            && lines[0].ends_with("params.json: pixel pitch 0.03 mm/px")
+            && lines[1].contains("missing.npz"),
+        "{err}"
+    );
     let not_npz = tmp.path().join("pack.npz");
     std::fs::write(&not_npz, b"not a zip").unwrap();
     let shipped = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../assets/calib/gelsight");
@@ -652,7 +671,7 @@ fn render_on(scene: &Path, png: &Path, device: &str, backend: Option<&str>) -> O
         scene.to_str().unwrap(),
         "--frame",
         "7",
-        "--out",
+        "--png",
         png.to_str().unwrap(),
         "--device",
         device,

@@ -308,7 +308,7 @@ fn pretrain_and_probe_print_progress_lines_without_a_terminal_unless_quiet() {
         "{err}"
     );
 
-    let probe = ["probe", "--config", r, "--data", d, "--seeds", "2"];
+    let probe = ["probe", "--config", r, "--data", d, "--probe-seeds", "2"];
     let out = piped(&[&["--progress-interval", "0"], &probe[..]].concat());
     let err = stderr(&out);
     let lines = progress_lines(&err, "probe");

@@ -80,7 +80,7 @@ impl DeviceArg {
         }
         match (self, GpuContext::shared()) {
             (_, Ok(ctx)) => {
-                eprintln!("images formed on the GPU: {}", ctx.adapter());
+                eprintln!("images formed with wgpu on {}", ctx.adapter());
                 Ok(Some(ctx))
             }
             (DeviceArg::Gpu, Err(e)) => Err(anyhow::anyhow!("--device gpu: {e}")),

@@ -48,9 +48,9 @@ enum Command {
         /// history matters).
         #[arg(long, default_value_t = 0)]
         frame: usize,
-        /// Output PNG.
-        #[arg(long)]
-        out: PathBuf,
+        /// The PNG to write (`--out` is accepted too).
+        #[arg(long, alias = "out")]
+        png: PathBuf,
         /// Also write the frame's ground-truth fields to this EXR file.
         #[arg(long)]
         fields: Option<PathBuf>,
@@ -133,9 +133,10 @@ enum Command {
         /// Ball radius (mm).
         #[arg(long, default_value_t = 2.0)]
         ball_radius_mm: f64,
-        /// Pixel pitch of the pack (mm per pixel).
+        /// Pixel pitch of the pack (mm per pixel); default: `sensor.pixmm` of the params.json
+        /// beside the pack (Taxim's layout).
         #[arg(long)]
-        pixmm: f64,
+        pixmm: Option<f64>,
         /// Frames to fit on.
         #[arg(long, default_value = "even")]
         frames: sparsh_optics::FrameSet,
@@ -271,9 +272,9 @@ enum Command {
         /// the random encoder is probed.
         #[arg(long)]
         encoder: Option<PathBuf>,
-        /// Probe seeds 0..N.
-        #[arg(long, default_value_t = 3)]
-        seeds: u64,
+        /// How many probe seeds (0..N) to fit each probe with (`--seeds` is accepted too).
+        #[arg(long, alias = "seeds", default_value_t = 3)]
+        probe_seeds: u64,
         /// Label budget: fit the probes on this share of the training samples (default: the
         /// recipe's `[log] probe_label_fraction`).
         #[arg(long)]
@@ -441,10 +442,10 @@ fn run(cli: Cli) -> Result<()> {
             scene,
             sequence,
             frame,
-            out,
+            png,
             fields,
             device,
-        } => dataset::render(&scene, sequence, frame, &out, fields.as_deref(), device),
+        } => dataset::render(&scene, sequence, frame, &png, fields.as_deref(), device),
         Command::Generate {
             scene,
             out,
@@ -566,7 +567,7 @@ fn run(cli: Cli) -> Result<()> {
             config,
             data,
             encoder,
-            seeds,
+            probe_seeds,
             label_fraction,
             patches,
             random_inits,
@@ -574,7 +575,7 @@ fn run(cli: Cli) -> Result<()> {
             &config,
             &data,
             encoder.as_deref(),
-            seeds,
+            probe_seeds,
             label_fraction,
             patches,
             random_inits,

@@ -24,6 +24,52 @@ fn setup(ball_radius_mm: f64, mm_per_px: f64) -> Result<BallSetup> {
     })
 }
 
+/// The pixel pitch of a Taxim pack: `--pixmm` when given, else `sensor.pixmm` of the
+/// `params.json` beside the pack (Taxim's layout); one line on stderr says which.
+fn pack_pixel_pitch(pack_path: &Path, pixmm: Option<f64>) -> Result<f64> {
+    let params = pack_path.with_file_name("params.json");
+    let recorded = || -> Result<f64> {
+        let text = std::fs::read_to_string(&params).map_err(|e| {
+            anyhow!(
+                "{}: --pixmm not given and no params.json beside the pack to read the pixel pitch \
+                 from ({e})",
+                pack_path.display()
+            )
+        })?;
+        let value: serde_json::Value = serde_json::from_str(&text)
+            .map_err(|e| anyhow!("{}: not JSON: {e}", params.display()))?;
+        match value
+            .pointer("/sensor/pixmm")
+            .and_then(serde_json::Value::as_f64)
+        {
+            Some(v) if v.is_finite() && v > 0.0 => Ok(v),
+            Some(v) => bail!("{}: sensor.pixmm must be > 0, got {v}", params.display()),
+            None => bail!(
+                "{}: no number at sensor.pixmm (give --pixmm instead)",
+                params.display()
+            ),
+        }
+    };
+    match pixmm {
+        Some(v) => {
+            if let Ok(r) = recorded()
+                && r != v
+            {
+                eprintln!(
+                    "{}: --pixmm {v} overrides the pack's {r} mm/px",
+                    params.display()
+                );
+            }
+            Ok(v)
+        }
+        None => {
+            let v = recorded()?;
+            eprintln!("{}: pixel pitch {v} mm/px", params.display());
+            Ok(v)
+        }
+    }
+}
+
 /// The shadow options of `calibrate` and `sim2real`.
 #[derive(Debug, Clone, Copy)]
 pub struct ShadowOptions<'a> {
@@ -60,12 +106,12 @@ fn preset(name: &str) -> Result<SensorConfig> {
 pub fn calibrate(
     pack_path: &Path,
     ball_radius_mm: f64,
-    mm_per_px: f64,
+    mm_per_px: Option<f64>,
     frames: FrameSet,
     out: &Path,
     shadows: ShadowOptions,
 ) -> Result<()> {
-    let setup = setup(ball_radius_mm, mm_per_px)?;
+    let setup = setup(ball_radius_mm, pack_pixel_pitch(pack_path, mm_per_px)?)?;
     let search = match (shadows.shadows, shadows.sensor) {
         (true, Some(name)) => Some(ShadowSearch::new(
             preset(name)?,
@@ -303,7 +349,7 @@ pub fn bench(
         Ok(times[times.len() / 2])
     };
     println!(
-        "| model | size | shadows | device | threads | ms/frame | × faster than Taxim (same shadows, 640×480) |"
+        "| model | size | shadows | device | threads | ms/frame | × faster than Taxim (640×480, same shadows) |"
     );
     println!("|---|---|---|---|---|---|---|");
     for (w, h) in [(320usize, 240usize), (640, 480)] {
@@ -340,11 +386,16 @@ pub fn bench(
                 } else {
                     TAXIM_640_MS.1
                 };
+                // Taxim was timed at 640×480 only: a ratio at another size would compare sizes
+                let ratio = |ms: f64| match (w, h) {
+                    (640, 480) => format!("{:.1}", taxim / ms),
+                    _ => "–".into(),
+                };
                 let row = |device: &str, threads: &str, ms: f64| {
                     println!(
-                        "| {name} | {w}×{h} | {} | {device} | {threads} | {ms:.1} | {:.1} |",
+                        "| {name} | {w}×{h} | {} | {device} | {threads} | {ms:.1} | {} |",
                         if shadows { "yes" } else { "no" },
-                        taxim / ms
+                        ratio(ms)
                     );
                 };
                 for &n in threads {

@@ -92,7 +92,7 @@ pub fn probe(
 ) -> Result<()> {
     anyhow::ensure!(
         (1..=100).contains(&seeds),
-        "--seeds must be 1 to 100, got {seeds}"
+        "--probe-seeds must be 1 to 100, got {seeds}"
     );
     if let Some(k) = random_inits {
         anyhow::ensure!(

@@ -63,14 +63,22 @@ impl GpuContext {
             ..Default::default()
         }))
         .map_err(|e| GpuError::Device(format!("{}: {e}", info.name)))?;
+        let kind = match info.device_type {
+            wgpu::DeviceType::DiscreteGpu => "a discrete GPU",
+            wgpu::DeviceType::IntegratedGpu => "an integrated GPU",
+            wgpu::DeviceType::VirtualGpu => "a virtual GPU",
+            wgpu::DeviceType::Cpu => "a software rasteriser on the CPU",
+            wgpu::DeviceType::Other => "a device of unknown type",
+        };
         Ok(GpuContext {
             device,
             queue,
-            adapter: format!("{} ({:?})", info.name, info.backend),
+            adapter: format!("{} ({:?}, {kind})", info.name, info.backend),
         })
     }
 
-    /// The adapter's name and backend, e.g. `llvmpipe (LLVM 15.0.6, 256 bits) (Vulkan)`.
+    /// The adapter's name, backend and kind, e.g. `llvmpipe (LLVM 15.0.6, 256 bits) (Vulkan, a
+    /// software rasteriser on the CPU)`.
     pub fn adapter(&self) -> &str {
         &self.adapter
     }
