@@ -108,7 +108,7 @@ enum Command {
         repeats: usize,
         /// CPU thread counts to time.
         #[arg(long = "threads-list", default_values = ["1", "2"], num_args = 1..)]
-        threads: Vec<usize>,
+        thread_counts: Vec<usize>,
         /// `gpu` or `auto` also time each model on the GPU (`auto`: if there is an adapter).
         #[arg(long, value_enum, default_value = "cpu")]
         device: dataset::DeviceArg,
@@ -475,12 +475,12 @@ fn run(cli: Cli) -> Result<()> {
         Command::BenchOptics {
             calib,
             repeats,
-            threads,
+            thread_counts,
             device,
         } => optics::bench(
             &calib.unwrap_or_else(|| shipped("assets/calib/gelsight")),
             repeats,
-            &threads,
+            &thread_counts,
             device,
         ),
         Command::Verify {
@@ -637,10 +637,14 @@ mod tests {
     fn list_options_take_several_values() {
         let cli = Cli::try_parse_from(["sparsh", "bench-optics", "--threads-list", "1", "2"])
             .expect("parses");
-        let Command::BenchOptics { threads, .. } = cli.command else {
+        let Command::BenchOptics { thread_counts, .. } = cli.command else {
             panic!("bench-optics");
         };
-        assert_eq!(threads, [1, 2]);
+        assert_eq!(thread_counts, [1, 2]);
+        // the global --threads is not shadowed by --threads-list
+        let cli =
+            Cli::try_parse_from(["sparsh", "bench-optics", "--threads", "2"]).expect("parses");
+        assert_eq!(cli.threads, Some(2));
         let cli = Cli::try_parse_from([
             "sparsh",
             "bench",
