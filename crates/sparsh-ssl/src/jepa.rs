@@ -9,9 +9,9 @@ use burn::prelude::*;
 
 use crate::ema::ema_update;
 use crate::masks::JepaMasks;
+use crate::pos_embed::sincos_tensor;
 use crate::vit::{
     Block, BlockConfig, LN_EPS, Vit, VitConfig, batch_standardize, gather_tokens, index_tensor,
-    sincos_tensor,
 };
 
 /// Regression loss in latent space.
@@ -51,8 +51,8 @@ pub struct PredictorConfig {
     /// MLP ratio.
     #[config(default = 4.0)]
     pub mlp_ratio: f64,
-    /// Patch grid `[frames, rows, columns]`.
-    pub grid: [usize; 3],
+    /// Axes of the position embedding ([`VitConfig::pos_grid`]).
+    pub pos_grid: Vec<usize>,
 }
 
 /// The JEPA predictor.
@@ -89,7 +89,7 @@ impl PredictorConfig {
                 .collect(),
             predictor_norm: LayerNormConfig::new(p).with_epsilon(LN_EPS).init(device),
             predictor_proj: LinearConfig::new(p, self.embed_dim).init(device),
-            pos: sincos_tensor(p, self.grid, device),
+            pos: sincos_tensor(p, &self.pos_grid, device),
         }
     }
 }
@@ -173,7 +173,7 @@ impl JepaConfig {
                 self.predictor_dim,
                 self.predictor_depth,
                 self.predictor_heads,
-                self.encoder.grid(),
+                self.encoder.pos_grid(),
             )
             .with_mlp_ratio(self.encoder.mlp_ratio)
             .init(device),

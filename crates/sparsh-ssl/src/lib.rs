@@ -1,7 +1,8 @@
 #![warn(missing_docs)]
 //! Self-supervised touch representations (Sparsh) in burn.
 //!
-//! - [`vit`]: the ViT encoder (no `[cls]`, fixed sinusoidal positions, optional registers).
+//! - [`vit`]: the ViT encoder (no `[cls]`, fixed sinusoidal positions, optional registers and
+//!   layer scale); [`pos_embed`]: the official sinusoidal table and its resampling.
 //! - [`masks`]: the masking and view samplers of the four objectives.
 //! - [`mae`], [`dino`], [`jepa`]: MAE, DINO, I-JEPA and V-JEPA.
 //! - [`data`]: official preprocessing, datasets (generated, Sparsh pickles, Taxim packs), the
@@ -15,6 +16,7 @@ pub mod ema;
 pub mod jepa;
 pub mod mae;
 pub mod masks;
+pub mod pos_embed;
 pub mod probe;
 pub mod recipe;
 pub mod rng;

@@ -6,9 +6,9 @@ use burn::nn::{LayerNorm, LayerNormConfig, Linear, LinearConfig};
 use burn::prelude::*;
 
 use crate::masks::MaeMask;
+use crate::pos_embed::sincos_tensor;
 use crate::vit::{
     Block, BlockConfig, LN_EPS, Vit, VitConfig, gather_tokens, index_tensor, patchify,
-    sincos_tensor,
 };
 
 /// Configuration of [`Mae`] (official defaults: mask 0.75, decoder 512 / 8 / 16).
@@ -74,7 +74,7 @@ impl MaeConfig {
                 .collect(),
             decoder_norm: LayerNormConfig::new(dd).with_epsilon(LN_EPS).init(device),
             decoder_pred: LinearConfig::new(dd, e.patch_dim()).init(device),
-            decoder_pos: sincos_tensor(dd, e.grid(), device),
+            decoder_pos: sincos_tensor(dd, &e.pos_grid(), device),
             norm_pix_loss: self.norm_pix_loss,
         }
     }

@@ -71,6 +71,10 @@ pub struct EncoderSection {
     /// Register tokens (DINO needs at least one).
     #[serde(default)]
     pub num_registers: usize,
+    /// Layer scale's initial value (official `init_values`: 1, DINOv2 1e-5); unset, the blocks
+    /// have none. Off in the CPU recipes.
+    #[serde(default)]
+    pub layer_scale: Option<f64>,
 }
 
 fn default_size() -> String {
@@ -422,7 +426,8 @@ impl Recipe {
             .with_depth(e.depth.unwrap_or(depth))
             .with_num_heads(e.num_heads.unwrap_or(heads))
             .with_mlp_ratio(e.mlp_ratio)
-            .with_num_registers(e.num_registers);
+            .with_num_registers(e.num_registers)
+            .with_layer_scale(e.layer_scale);
         cfg.validate().map_err(|e| {
             Error::Config(format!(
                 "encoder.{}",
@@ -603,6 +608,34 @@ mod tests {
         )
         .unwrap();
         assert_eq!(off.encoder_config().unwrap().num_patches(), 300);
+    }
+
+    /// Layer scale is off unless the recipe sets its initial value, which must be positive.
+    #[test]
+    fn layer_scale_is_set_by_the_recipe() {
+        let plain = Recipe::parse(BASE).unwrap().encoder_config().unwrap();
+        assert_eq!(plain.layer_scale, None);
+        let with = BASE.replace("patch_size = 8\n", "patch_size = 8\nlayer_scale = 1e-5\n");
+        let cfg = Recipe::parse(&with).unwrap().encoder_config().unwrap();
+        assert_eq!(cfg.layer_scale, Some(1e-5));
+        let vit = cfg.init(&burn::prelude::Device::flex());
+        let gamma: Vec<f32> = vit.blocks[0]
+            .ls2
+            .as_ref()
+            .unwrap()
+            .val()
+            .into_data()
+            .try_to_vec::<f32>()
+            .unwrap();
+        assert!(gamma.iter().all(|&g| g == 1e-5f32), "{gamma:?}");
+        let e = Recipe::parse(
+            &BASE.replace("patch_size = 8\n", "patch_size = 8\nlayer_scale = -1.0\n"),
+        )
+        .unwrap_err();
+        assert!(
+            e.contains("encoder.layer_scale") && !e.contains('\n'),
+            "{e}"
+        );
     }
 
     #[test]

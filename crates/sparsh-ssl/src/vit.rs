@@ -1,5 +1,6 @@
 //! The Vision Transformer encoder of Sparsh: no `[cls]` token, fixed sinusoidal position
-//! embeddings, optional register tokens, layer-normalized tokens out.
+//! embeddings ([`crate::pos_embed`]), optional register tokens, optional layer scale,
+//! layer-normalized tokens out (official `tactile_ssl/model/vision_transformer.py`).
 //!
 //! Inputs are clips `[batch, frames, channels, height, width]`. The image objectives use one
 //! "frame" of 6 channels (I_t ⊕ I_{t−5}); V-JEPA uses 4 frames of 3 channels cut into tubelets of
@@ -15,6 +16,7 @@ use burn::tensor::module::attention;
 use burn::tensor::ops::AttentionModuleOptions;
 
 use crate::Error;
+use crate::pos_embed::sincos_tensor;
 
 /// Layer-norm epsilon of the official encoder (DINOv2-style blocks).
 pub const LN_EPS: f64 = 1e-6;
@@ -50,6 +52,11 @@ pub struct VitConfig {
     /// Register tokens prepended to the patch tokens (DINO uses one as its `[cls]`).
     #[config(default = 0)]
     pub num_registers: usize,
+    /// Layer scale: the initial value of each block's per-channel residual scales `ls1`, `ls2`
+    /// (official `init_values`: 1 for MAE, DINO, I-JEPA and V-JEPA, 1e-5 for DINOv2); `None`
+    /// for blocks without layer scale.
+    #[config(default = "None")]
+    pub layer_scale: Option<f64>,
 }
 
 /// Named encoder sizes of the official code (`vit_tiny`, `vit_small`, `vit_base`).
@@ -70,6 +77,17 @@ impl VitConfig {
             self.img_size[0] / self.patch_size,
             self.img_size[1] / self.patch_size,
         ]
+    }
+
+    /// Axes of the position embedding: `[rows, columns]` for images, `[frames / tubelet, rows,
+    /// columns]` for clips (`num_frames > 1`, the official `is_video`).
+    pub fn pos_grid(&self) -> Vec<usize> {
+        let [gt, gh, gw] = self.grid();
+        if self.num_frames > 1 {
+            vec![gt, gh, gw]
+        } else {
+            vec![gh, gw]
+        }
     }
 
     /// Number of patch (tubelet) tokens.
@@ -120,14 +138,16 @@ impl VitConfig {
                 ),
             );
         }
-        if !self.embed_dim.is_multiple_of(8) {
+        if !self.embed_dim.is_multiple_of(2) {
             return bad(
                 "embed_dim",
-                format!(
-                    "{} must be a multiple of 8 (sinusoidal embeddings)",
-                    self.embed_dim
-                ),
+                format!("{} must be even (sinusoidal embeddings)", self.embed_dim),
             );
+        }
+        if let Some(g) = self.layer_scale
+            && !(g.is_finite() && g > 0.0)
+        {
+            return bad("layer_scale", format!("{g} is not a positive number"));
         }
         Ok(())
     }
@@ -146,56 +166,19 @@ impl VitConfig {
             patch_embed: LinearConfig::new(self.patch_dim(), d).init(device),
             register_tokens: registers,
             blocks: (0..self.depth)
-                .map(|_| BlockConfig::new(d, self.num_heads, self.mlp_ratio).init(device))
+                .map(|_| {
+                    BlockConfig::new(d, self.num_heads, self.mlp_ratio)
+                        .with_layer_scale(self.layer_scale)
+                        .init(device)
+                })
                 .collect(),
             norm: LayerNormConfig::new(d).with_epsilon(LN_EPS).init(device),
-            pos_embed: sincos_tensor(d, self.grid(), device),
+            pos_embed: sincos_tensor(d, &self.pos_grid(), device),
+            pos_grid: self.pos_grid(),
             patch_size: self.patch_size,
             tubelet_size: self.tubelet_size,
         }
     }
-}
-
-/// Fixed sinusoidal position embedding as a `[1, tokens, dim]` tensor (see [`sincos_embedding`]).
-pub fn sincos_tensor(dim: usize, grid: [usize; 3], device: &Device) -> Tensor<3> {
-    let n = grid.iter().product::<usize>();
-    Tensor::<1>::from_floats(sincos_embedding(dim, grid).as_slice(), device).reshape([1, n, dim])
-}
-
-/// 1-D sinusoidal embedding of positions `pos` into `dim` values (MAE / I-JEPA convention):
-/// `ω_i = 10000^(−i/(dim/2))`, `[sin(p·ω_0..), cos(p·ω_0..)]`.
-fn sincos_1d(dim: usize, pos: f64, out: &mut Vec<f32>) {
-    let half = dim / 2;
-    let omega = |i: usize| 1.0 / 10000f64.powf(i as f64 / half as f64);
-    out.extend((0..half).map(|i| (pos * omega(i)).sin() as f32));
-    out.extend((0..half).map(|i| (pos * omega(i)).cos() as f32));
-}
-
-/// Fixed sinusoidal position embeddings, row-major over `grid = [frames, rows, columns]`.
-///
-/// ```text
-/// 2-D (frames = 1): [emb_{dim/2}(column), emb_{dim/2}(row)]        (MAE get_2d_sincos_pos_embed)
-/// 3-D (frames > 1): [emb_{dim/2}(frame), emb_{dim/4}(row), emb_{dim/4}(column)]   (V-JEPA)
-/// ```
-/// Checkpoints carry their own `pos_embed`, which [`crate::weights`] loads in place of this one.
-pub fn sincos_embedding(dim: usize, grid: [usize; 3]) -> Vec<f32> {
-    let [gt, gh, gw] = grid;
-    let mut out = Vec::with_capacity(gt * gh * gw * dim);
-    for t in 0..gt {
-        for r in 0..gh {
-            for c in 0..gw {
-                if gt == 1 {
-                    sincos_1d(dim / 2, c as f64, &mut out);
-                    sincos_1d(dim / 2, r as f64, &mut out);
-                } else {
-                    sincos_1d(dim / 2, t as f64, &mut out);
-                    sincos_1d(dim / 4, r as f64, &mut out);
-                    sincos_1d(dim / 4, c as f64, &mut out);
-                }
-            }
-        }
-    }
-    out
 }
 
 /// Cuts clips into flattened patches (tubelets).
@@ -306,6 +289,9 @@ pub struct BlockConfig {
     pub num_heads: usize,
     /// MLP hidden width as a multiple of `dim`.
     pub mlp_ratio: f64,
+    /// Initial layer-scale value (see [`VitConfig::layer_scale`]); `None` for none.
+    #[config(default = "None")]
+    pub layer_scale: Option<f64>,
 }
 
 /// The two-layer GELU MLP of a block (`fc1`, `fc2`).
@@ -317,28 +303,39 @@ pub struct Mlp {
     pub fc2: Linear,
 }
 
-/// Pre-norm transformer block: `x + attn(norm1 x)`, then `x + mlp(norm2 x)`.
+/// Pre-norm transformer block: `x + γ₁ ⊙ attn(norm1 x)`, then `x + γ₂ ⊙ mlp(norm2 x)`, with the
+/// layer-scale vectors `γ` (official `LayerScale`, `tactile_ssl/model/layers/layer_scale.py`,
+/// applied in `Block.forward`, `tactile_ssl/model/layers/block.py`) or without (`γ = 1`).
 #[derive(Module, Debug)]
 pub struct Block {
     /// Norm before attention.
     pub norm1: LayerNorm,
     /// Self-attention.
     pub attn: Attention,
+    /// Layer scale `γ₁` `[dim]` of the attention branch (official `ls1.gamma`).
+    pub ls1: Option<Param<Tensor<1>>>,
     /// Norm before the MLP.
     pub norm2: LayerNorm,
     /// MLP.
     pub mlp: Mlp,
+    /// Layer scale `γ₂` `[dim]` of the MLP branch (official `ls2.gamma`).
+    pub ls2: Option<Param<Tensor<1>>>,
 }
 
 impl BlockConfig {
     /// Initialize a [`Block`].
     pub fn init(&self, device: &Device) -> Block {
         let hidden = (self.dim as f64 * self.mlp_ratio) as usize;
+        let gamma = || {
+            self.layer_scale
+                .map(|g| Param::from_tensor(Tensor::ones([self.dim], device).mul_scalar(g)))
+        };
         Block {
             norm1: LayerNormConfig::new(self.dim)
                 .with_epsilon(LN_EPS)
                 .init(device),
             attn: AttentionConfig::new(self.dim, self.num_heads).init(device),
+            ls1: gamma(),
             norm2: LayerNormConfig::new(self.dim)
                 .with_epsilon(LN_EPS)
                 .init(device),
@@ -346,6 +343,7 @@ impl BlockConfig {
                 fc1: LinearConfig::new(self.dim, hidden).init(device),
                 fc2: LinearConfig::new(hidden, self.dim).init(device),
             },
+            ls2: gamma(),
         }
     }
 }
@@ -356,12 +354,16 @@ impl Block {
     /// # Shapes
     /// - `x`: `[batch, tokens, dim]` → `[batch, tokens, dim]`
     pub fn forward(&self, x: Tensor<3>) -> Tensor<3> {
-        let x = x.clone() + self.attn.forward(self.norm1.forward(x));
+        let scaled = |y: Tensor<3>, gamma: &Option<Param<Tensor<1>>>| match gamma {
+            Some(g) => y * g.val().unsqueeze::<3>(),
+            None => y,
+        };
+        let x = x.clone() + scaled(self.attn.forward(self.norm1.forward(x)), &self.ls1);
         let y = self
             .mlp
             .fc2
             .forward(gelu(self.mlp.fc1.forward(self.norm2.forward(x.clone()))));
-        x + y
+        x + scaled(y, &self.ls2)
     }
 }
 
@@ -388,6 +390,9 @@ pub struct Vit {
     /// Fixed position embedding `[1, tokens, dim]` (not trained).
     #[module(skip)]
     pub pos_embed: Tensor<3>,
+    /// Axes of the position embedding ([`VitConfig::pos_grid`]).
+    #[module(skip)]
+    pub pos_grid: Vec<usize>,
     /// Patch side.
     #[module(skip)]
     pub patch_size: usize,
@@ -510,7 +515,7 @@ mod tests {
 
     #[test]
     fn sincos_rows_are_distinct_and_bounded() {
-        let e = sincos_embedding(16, [1, 3, 4]);
+        let e = crate::pos_embed::sincos_embedding(16, &[3, 4]);
         assert_eq!(e.len(), 12 * 16);
         assert!(e.iter().all(|v| v.abs() <= 1.0));
         // position (0,0): sin terms 0, cos terms 1

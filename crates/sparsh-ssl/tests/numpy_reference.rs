@@ -3,33 +3,31 @@
 //! `python3` with numpy is unavailable (`pip install numpy`), unless `SPARSH_REQUIRE_PYTHON` is
 //! set, when it fails instead.
 
+mod common;
+
 use std::path::Path;
-use std::process::Command;
 
 use burn::prelude::*;
-use safetensors::{Dtype, SafeTensors, tensor::TensorView};
+use common::{Named, normals, python_ready, run_script, write_safetensors};
+use safetensors::SafeTensors;
 use sparsh_ssl::rng::Rng;
 use sparsh_ssl::vit::VitConfig;
 use sparsh_ssl::weights::{load_encoder, save_encoder};
 
-fn numpy_available() -> bool {
-    Command::new("python3")
-        .args(["-c", "import numpy"])
-        .output()
-        .is_ok_and(|o| o.status.success())
-}
-
-/// Random official-layout weights with the keys and shapes of `template`, plus `input`.
-fn randomize(template: &Path, out: &Path, input_shape: &[usize], seed: u64) -> Vec<f32> {
+/// Random official-layout weights with the keys and shapes of `template` (its `pos_embed` kept),
+/// and a random `input` in a file of its own.
+fn randomize(
+    template: &Path,
+    out: &Path,
+    input: &Path,
+    input_shape: &[usize],
+    seed: u64,
+) -> Vec<f32> {
     let bytes = std::fs::read(template).unwrap();
     let st = SafeTensors::deserialize(&bytes).unwrap();
     let mut rng = Rng::new(seed);
-    let mut normal = |scale: f64| {
-        let u = rng.uniform().max(1e-12);
-        let v = rng.uniform();
-        ((-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos() * scale) as f32
-    };
-    let mut tensors: Vec<(String, Vec<usize>, Vec<f32>)> = Vec::new();
+    let mut normal = |scale: f64| normals(&mut rng, 1, scale)[0];
+    let mut tensors: Vec<Named> = Vec::new();
     for name in st.names() {
         let t = st.tensor(name).unwrap();
         let n: usize = t.shape().iter().product();
@@ -45,25 +43,15 @@ fn randomize(template: &Path, out: &Path, input_shape: &[usize], seed: u64) -> V
         };
         tensors.push((name.to_string(), t.shape().to_vec(), values));
     }
+    write_safetensors(out, &tensors, None);
     let n: usize = input_shape.iter().product();
-    let input: Vec<f32> = (0..n).map(|_| normal(1.0)).collect();
-    tensors.push(("input".into(), input_shape.to_vec(), input.clone()));
-    let raw: Vec<Vec<u8>> = tensors
-        .iter()
-        .map(|(_, _, v)| v.iter().flat_map(|x| x.to_le_bytes()).collect())
-        .collect();
-    let views: Vec<(String, TensorView)> = tensors
-        .iter()
-        .zip(&raw)
-        .map(|((name, shape, _), b)| {
-            (
-                name.clone(),
-                TensorView::new(Dtype::F32, shape.clone(), b).unwrap(),
-            )
-        })
-        .collect();
-    std::fs::write(out, safetensors::serialize(views, None).unwrap()).unwrap();
-    input
+    let values: Vec<f32> = (0..n).map(|_| normal(1.0)).collect();
+    write_safetensors(
+        input,
+        &[("input".into(), input_shape.to_vec(), values.clone())],
+        None,
+    );
+    values
 }
 
 fn check(cfg: VitConfig, seed: u64) {
@@ -71,10 +59,11 @@ fn check(cfg: VitConfig, seed: u64) {
     let device = Device::flex();
     let template = dir.path().join("template.safetensors");
     let file = dir.path().join("weights.safetensors");
+    let input_file = dir.path().join("input.safetensors");
     save_encoder(&cfg.init(&device), &template).unwrap();
     let [h, w] = cfg.img_size;
     let shape = [2, cfg.num_frames, cfg.in_chans, h, w];
-    let input = randomize(&template, &file, &shape, seed);
+    let input = randomize(&template, &file, &input_file, &shape, seed);
 
     let vit = load_encoder(cfg.init(&device), &file, None).unwrap();
     let x = Tensor::<1>::from_floats(input.as_slice(), &device).reshape(shape);
@@ -108,19 +97,16 @@ fn check(cfg: VitConfig, seed: u64) {
         );
     }
 
-    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/numpy_vit.py");
-    let run = Command::new("python3")
-        .arg(&script)
-        .arg(&file)
-        .arg(cfg.num_heads.to_string())
-        .output()
-        .unwrap();
-    assert!(
-        run.status.success(),
-        "numpy reference failed: {}",
-        String::from_utf8_lossy(&run.stderr)
+    let heads = cfg.num_heads.to_string();
+    let reference = run_script(
+        "numpy_vit.py",
+        &[
+            file.to_str().unwrap(),
+            input_file.to_str().unwrap(),
+            heads.as_str(),
+        ],
+        "",
     );
-    let reference: serde_json::Value = serde_json::from_slice(&run.stdout).unwrap();
     let expect_shape: Vec<usize> = reference["shape"]
         .as_array()
         .unwrap()
@@ -141,6 +127,7 @@ fn check(cfg: VitConfig, seed: u64) {
         .iter()
         .zip(&refv)
         .fold(0.0f64, |m, (a, b)| m.max((*a as f64 - b).abs()));
+    eprintln!("max abs difference {err:.3e} (largest value {scale:.3})");
     assert!(err / scale <= 1e-4, "relative error {:.3e}", err / scale);
     let pos_dev = reference["pos_dev"].as_f64().unwrap();
     assert!(
@@ -151,14 +138,7 @@ fn check(cfg: VitConfig, seed: u64) {
 
 #[test]
 fn encoder_matches_numpy_reference() {
-    if !numpy_available() {
-        assert!(
-            std::env::var_os("SPARSH_REQUIRE_PYTHON").is_none(),
-            "SPARSH_REQUIRE_PYTHON is set but python3 with numpy is not available"
-        );
-        eprintln!(
-            "skipping encoder_matches_numpy_reference: python3 with numpy not found (pip install numpy)"
-        );
+    if !python_ready("encoder_matches_numpy_reference") {
         return;
     }
     // image encoder: 6 channels, registers
@@ -169,6 +149,16 @@ fn encoder_matches_numpy_reference() {
             .with_num_heads(4)
             .with_num_registers(2),
         1,
+    );
+    // with layer scale (random gammas, not 1)
+    check(
+        VitConfig::new([16, 12], 4)
+            .with_embed_dim(30)
+            .with_depth(2)
+            .with_num_heads(3)
+            .with_num_registers(1)
+            .with_layer_scale(Some(1.0)),
+        3,
     );
     // V-JEPA clip encoder: 4 frames of 3 channels, tubelets of 2
     check(

@@ -1,11 +1,14 @@
-"""Independent NumPy forward pass of the Sparsh ViT encoder, for the parity test.
+"""Independent NumPy forward pass of the Sparsh ViT encoder, for the parity tests.
 
-Reads a safetensors file holding the encoder under the official PyTorch key names plus an
-`input` tensor [batch, frames, channels, height, width]; prints JSON with the normalized output
-tokens (registers first) and the largest deviation of the file's `pos_embed` from the sinusoidal
-formula computed here (MAE 2-D / V-JEPA 3-D conventions).
+Reads a safetensors file holding the encoder under the official PyTorch key names (under
+PREFIX, default none) and a safetensors file with one `input` tensor
+[batch, frames, channels, height, width]; prints JSON with the normalized output tokens
+(registers first) and, when the file stores a `pos_embed` table, its largest deviation from the
+official sinusoidal formula (`numpy_pos_embed.sinusoidal`). A file with the official
+`pos_embed.frequency_bands` instead gets its table from those bands. Blocks follow the official
+`Block.forward` (tactile_ssl/model/layers/block.py), with layer scale `ls1`/`ls2` when present.
 
-usage: python3 numpy_vit.py FILE NUM_HEADS
+usage: python3 numpy_vit.py WEIGHTS INPUT NUM_HEADS [PREFIX]
 """
 import json
 import math
@@ -13,6 +16,8 @@ import struct
 import sys
 
 import numpy as np
+
+from numpy_pos_embed import sinusoidal
 
 
 def read_safetensors(path):
@@ -32,21 +37,6 @@ def read_safetensors(path):
     return out
 
 
-def sincos_1d(dim, pos):
-    omega = 1.0 / 10000 ** (np.arange(dim // 2, dtype=np.float64) / (dim / 2.0))
-    out = np.outer(pos.reshape(-1), omega)
-    return np.concatenate([np.sin(out), np.cos(out)], axis=1)
-
-
-def sincos(dim, gt, gh, gw):
-    t, r, c = np.meshgrid(np.arange(gt), np.arange(gh), np.arange(gw), indexing="ij")
-    if gt == 1:
-        return np.concatenate([sincos_1d(dim // 2, c), sincos_1d(dim // 2, r)], axis=1)
-    return np.concatenate(
-        [sincos_1d(dim // 2, t), sincos_1d(dim // 4, r), sincos_1d(dim // 4, c)], axis=1
-    )
-
-
 def layer_norm(x, w, b, eps=1e-6):
     m = x.mean(-1, keepdims=True)
     v = ((x - m) ** 2).mean(-1, keepdims=True)
@@ -61,9 +51,12 @@ def gelu(x):
 
 
 def main():
-    weights = read_safetensors(sys.argv[1])
-    heads = int(sys.argv[2])
-    x = weights.pop("input")
+    prefix = sys.argv[4] if len(sys.argv) > 4 else ""
+    weights = {
+        k[len(prefix) :]: v for k, v in read_safetensors(sys.argv[1]).items() if k.startswith(prefix)
+    }
+    x = read_safetensors(sys.argv[2])["input"]
+    heads = int(sys.argv[3])
     pw = weights["patch_embed.proj.weight"]
     if pw.ndim == 4:
         pw = pw[:, :, None]
@@ -78,8 +71,14 @@ def main():
                 patch = patch.transpose(0, 2, 1, 3, 4)  # conv3d: [B, C, t, p, p]
                 tokens.append(np.einsum("bctyx,dctyx->bd", patch, pw))
     h = np.stack(tokens, 1) + weights["patch_embed.proj.bias"]
-    pos_dev = float(np.abs(weights["pos_embed"][0] - sincos(dim, gt, gh, gw)).max())
-    h = h + weights["pos_embed"]
+    grid = [gt, gh, gw] if frames > 1 else [gh, gw]
+    formula = sinusoidal(dim, grid, weights.get("pos_embed.frequency_bands"))
+    if "pos_embed" in weights:
+        pos_dev = float(np.abs(weights["pos_embed"][0] - formula).max())
+        h = h + weights["pos_embed"]
+    else:
+        pos_dev = None
+        h = h + formula
     if "register_tokens" in weights:
         reg = weights["register_tokens"]
         h = np.concatenate([np.broadcast_to(reg, (b,) + reg.shape[1:]), h], 1)
@@ -95,10 +94,12 @@ def main():
         a = np.exp(a - a.max(-1, keepdims=True))
         a = a / a.sum(-1, keepdims=True)
         o = (a @ v).transpose(0, 2, 1, 3).reshape(b, n, dim)
-        h = h + o @ w("attn.proj.weight").T + w("attn.proj.bias")
+        ls1 = weights.get(f"blocks.{i}.ls1.gamma", 1.0)
+        ls2 = weights.get(f"blocks.{i}.ls2.gamma", 1.0)
+        h = h + ls1 * (o @ w("attn.proj.weight").T + w("attn.proj.bias"))
         y = layer_norm(h, w("norm2.weight"), w("norm2.bias"))
         y = gelu(y @ w("mlp.fc1.weight").T + w("mlp.fc1.bias"))
-        h = h + y @ w("mlp.fc2.weight").T + w("mlp.fc2.bias")
+        h = h + ls2 * (y @ w("mlp.fc2.weight").T + w("mlp.fc2.bias"))
         i += 1
     h = layer_norm(h, weights["norm.weight"], weights["norm.bias"])
     json.dump({"shape": list(h.shape), "values": h.ravel().tolist(), "pos_dev": pos_dev}, sys.stdout)
