@@ -2,6 +2,7 @@
 
 mod ablate;
 mod dataset;
+mod embed;
 mod fieldprobe;
 mod optics;
 mod pretrain;
@@ -27,7 +28,7 @@ struct Cli {
     /// errors are still printed.
     #[arg(long, global = true)]
     quiet: bool,
-    /// Seconds between progress lines of `generate`, `pretrain` and `probe` when stderr is not
+    /// Seconds between progress lines of `generate`, `pretrain`, `probe` and `embed` when stderr is not
     /// a terminal (a log file or a pipe).
     #[arg(long, global = true, value_name = "SECONDS", default_value_t = 5.0)]
     progress_interval: f64,
@@ -287,6 +288,31 @@ enum Command {
         /// and rank the pretrained encoder among them: one random draw is a noisy baseline.
         #[arg(long)]
         random_inits: Option<u64>,
+    },
+    /// Features of every frame of a generated dataset from a trained encoder, as its recipe
+    /// feeds it (the frame stacking, each frame against its sequence's background); written as
+    /// safetensors (`features`, `frame`) or .npy (`features`), by the extension of --out.
+    Embed {
+        /// Encoder weights (safetensors, e.g. runs/NAME/encoder.safetensors).
+        #[arg(long)]
+        encoder: PathBuf,
+        /// The encoder's recipe (TOML; default: recipe.toml beside the encoder, as a run
+        /// directory holds it).
+        #[arg(long)]
+        config: Option<PathBuf>,
+        /// Dataset directory written by `generate`.
+        #[arg(long)]
+        data: PathBuf,
+        /// Output file: .safetensors or .npy; rows in ascending frame number.
+        #[arg(long)]
+        out: PathBuf,
+        /// Features per frame: `mean` of the patch tokens (`[frames, dim]`) or `none`, every
+        /// patch token (`[frames, tokens, dim]`).
+        #[arg(long, value_enum, default_value = "mean")]
+        pool: embed::PoolArg,
+        /// Frames per forward pass.
+        #[arg(long, default_value_t = 32)]
+        batch_size: usize,
     },
     /// TacBench: frozen encoders read out by the attentive probe on force, slip, pose,
     /// texture and grasp tasks at label budgets, against random draws of the same
@@ -580,6 +606,14 @@ fn run(cli: Cli) -> Result<()> {
             patches,
             random_inits,
         ),
+        Command::Embed {
+            encoder,
+            config,
+            data,
+            out,
+            pool,
+            batch_size,
+        } => embed::embed(&encoder, config.as_deref(), &data, &out, pool, batch_size),
         Command::Tacbench {
             config,
             out,

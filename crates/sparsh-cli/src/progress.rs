@@ -1,4 +1,4 @@
-//! Progress of long commands (`generate`, `pretrain`, `probe`) on stderr: a bar on a terminal,
+//! Progress of long commands (`generate`, `pretrain`, `probe`, `embed`) on stderr: a bar on a terminal,
 //! otherwise a line every few seconds (done/total, rate, ETA) for logs; nothing with `--quiet`.
 
 use std::io::IsTerminal;

@@ -127,7 +127,8 @@ fn decode(bytes: &[u8], what: &Path) -> Result<RgbImage, Error> {
         })
 }
 
-fn read_image(path: &Path) -> Result<RgbImage, Error> {
+/// Reads an image file as RGB; the error names the file.
+pub fn read_image(path: &Path) -> Result<RgbImage, Error> {
     let bytes = std::fs::read(path).map_err(|e| Error::file(path, e))?;
     decode(&bytes, path)
 }
@@ -141,6 +142,68 @@ struct LabelRow {
     force_n: Option<[f32; 3]>,
     #[serde(default)]
     background: Option<String>,
+}
+
+/// One sequence of a dataset written by `sparsh generate`, as its files.
+#[derive(Debug, Clone)]
+pub struct GeneratedSequence {
+    /// Dataset-wide frame numbers (`frames/NNNNNN.png`) in time order.
+    pub frame_ids: Vec<usize>,
+    /// The frame files, in time order.
+    pub frames: Vec<PathBuf>,
+    /// The no-contact image the frames are preprocessed against: the rows' `background`, else
+    /// the dataset's `background.png`, else the sequence's first frame.
+    pub background: PathBuf,
+    /// Total force per frame `[fx, fy, fz]` in N, when every frame is labelled.
+    pub forces: Option<Vec<[f32; 3]>>,
+}
+
+/// The sequences of a dataset written by `sparsh generate`, in sequence order, read from its
+/// `labels.jsonl`.
+pub fn generated_sequences(dir: &Path) -> Result<Vec<GeneratedSequence>, Error> {
+    if !dir.is_dir() {
+        return Err(Error::file(dir, "no such directory"));
+    }
+    let labels = dir.join("labels.jsonl");
+    if !labels.is_file() {
+        return Err(Error::file(
+            dir,
+            "not a dataset written by `sparsh generate` (no labels.jsonl)",
+        ));
+    }
+    let text = std::fs::read_to_string(&labels).map_err(|e| Error::file(&labels, e))?;
+    let mut by_seq: BTreeMap<usize, Vec<LabelRow>> = BTreeMap::new();
+    for (i, line) in text
+        .lines()
+        .enumerate()
+        .filter(|(_, l)| !l.trim().is_empty())
+    {
+        let row: LabelRow = serde_json::from_str(line)
+            .map_err(|e| Error::file(&labels, format!("line {}: {e}", i + 1)))?;
+        by_seq.entry(row.sequence).or_default().push(row);
+    }
+    if by_seq.is_empty() {
+        return Err(Error::file(&labels, "no frames"));
+    }
+    let shared_bg = dir.join("background.png");
+    let frame_path = |i: usize| dir.join("frames").join(format!("{i:06}.png"));
+    Ok(by_seq
+        .into_values()
+        .map(|mut rows| {
+            rows.sort_by_key(|r| r.frame_in_sequence);
+            let background = match &rows[0].background {
+                Some(rel) => dir.join(rel),
+                None if shared_bg.is_file() => shared_bg.clone(),
+                None => frame_path(rows[0].frame),
+            };
+            GeneratedSequence {
+                frame_ids: rows.iter().map(|r| r.frame).collect(),
+                frames: rows.iter().map(|r| frame_path(r.frame)).collect(),
+                background,
+                forces: rows.iter().map(|r| r.force_n).collect(),
+            }
+        })
+        .collect())
 }
 
 impl Dataset {
@@ -196,51 +259,23 @@ impl Dataset {
 
     /// Loads a dataset written by `sparsh generate`.
     pub fn load_generated(dir: &Path, size: [usize; 2]) -> Result<Self, Error> {
-        let labels = dir.join("labels.jsonl");
-        let text = std::fs::read_to_string(&labels).map_err(|e| Error::file(&labels, e))?;
-        let mut by_seq: BTreeMap<usize, Vec<LabelRow>> = BTreeMap::new();
-        for (i, line) in text
-            .lines()
-            .enumerate()
-            .filter(|(_, l)| !l.trim().is_empty())
-        {
-            let row: LabelRow = serde_json::from_str(line)
-                .map_err(|e| Error::file(&labels, format!("line {}: {e}", i + 1)))?;
-            by_seq.entry(row.sequence).or_default().push(row);
-        }
-        if by_seq.is_empty() {
-            return Err(Error::file(&labels, "no frames"));
-        }
-        let bg_path = dir.join("background.png");
-        let shared_bg = if bg_path.is_file() {
-            Some(read_image(&bg_path)?)
-        } else {
-            None
-        };
-        let frame_path = |i: usize| dir.join("frames").join(format!("{i:06}.png"));
         let mut sequences = Vec::new();
-        for (_, mut rows) in by_seq {
-            rows.sort_by_key(|r| r.frame_in_sequence);
-            let bg = match (&rows[0].background, &shared_bg) {
-                (Some(rel), _) => read_image(&dir.join(rel))?,
-                (None, Some(bg)) => bg.clone(),
-                (None, None) => read_image(&frame_path(rows[0].frame))?,
-            };
+        for seq in generated_sequences(dir)? {
+            let bg = read_image(&seq.background)?;
             let bg = &bg;
-            let frames = rows
+            let frames = seq
+                .frames
                 .par_iter()
-                .map(|r| {
-                    let p = frame_path(r.frame);
-                    let img = read_image(&p)?;
+                .map(|p| {
+                    let img = read_image(p)?;
                     preprocess(&img, bg, size)
                         .map(Arc::new)
-                        .map_err(|e| Error::file(&p, e))
+                        .map_err(|e| Error::file(p, e))
                 })
                 .collect::<Result<Vec<_>, _>>()?;
-            let forces = rows.iter().map(|r| r.force_n).collect::<Option<Vec<_>>>();
             sequences.push(Sequence {
                 frames,
-                forces,
+                forces: seq.forces,
                 rest_frame: None,
             });
         }

@@ -8,11 +8,13 @@
 //! - [`data`]: official preprocessing, datasets (generated, Sparsh pickles, Taxim packs), the
 //!   batch loader.
 //! - [`weights`]: safetensors with the official checkpoints' key names.
+//! - [`embed`]: a trained encoder as a frozen feature extractor of tactile frames.
 //! - [`recipe`], [`train`], [`probe`]: training recipes, the training loop, the online force probe.
 
 pub mod data;
 pub mod dino;
 pub mod ema;
+pub mod embed;
 pub mod jepa;
 pub mod mae;
 pub mod masks;

@@ -36,3 +36,61 @@ fn shipped_recipes_are_valid() {
     assert_eq!((enc.num_frames, enc.tubelet_size, enc.grid()[0]), (4, 2, 2));
     let _ = enc.init(&Device::flex());
 }
+
+/// The paper's ViT-base recipes (assets/ssl/*_base.toml) carry its numbers and each takes one
+/// training step on the CPU (the batch cut to 2 samples; everything else as shipped).
+#[test]
+fn paper_base_recipes_take_a_step() {
+    use sparsh_ssl::data::HostBatch;
+    use sparsh_ssl::rng::Rng;
+    use sparsh_ssl::train::{Trainee, optimizer};
+
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../assets/ssl");
+    for (name, batch, lr, registers) in [
+        ("mae", 100, 1e-4, 0),
+        ("dino", 150, 1e-4, 1),
+        ("dinov2", 150, 2e-3, 1),
+        ("ijepa", 150, 6.25e-4, 0),
+        ("vjepa", 150, 6.25e-4, 0),
+    ] {
+        let mut recipe = Recipe::load(&dir.join(format!("{name}_base.toml"))).unwrap();
+        let enc = recipe.encoder_config().unwrap();
+        assert_eq!(
+            (enc.embed_dim, enc.depth, enc.num_heads, enc.patch_size),
+            (768, 12, 12, 14),
+            "{name}: ViT-B/14"
+        );
+        assert_eq!(enc.img_size, [224, 224], "{name}");
+        assert_eq!(enc.num_registers, registers, "{name}");
+        // layer scale in every block, as the official encoders (DINOv2 initialises it at 1e-5)
+        let gamma = if name == "dinov2" { 1e-5 } else { 1.0 };
+        assert_eq!(enc.layer_scale, Some(gamma), "{name}");
+        let o = &recipe.optim;
+        assert_eq!((o.batch_size, o.lr), (batch, lr), "{name}");
+        // 150 epochs of 460k frames, the first 30 warming up
+        let per_epoch = 460_000usize.div_ceil(batch);
+        assert_eq!(
+            (o.steps, o.warmup_steps),
+            (150 * per_epoch, 30 * per_epoch),
+            "{name}"
+        );
+        recipe.optim.batch_size = 2;
+        recipe.optim.micro_batches = 1;
+        let device = Device::flex().autodiff();
+        let model = Trainee::init(&recipe, &device).unwrap();
+        let mut optim = optimizer(&recipe);
+        let shape = [2, enc.num_frames, enc.in_chans, 224, 224];
+        let mut rng = Rng::new(5);
+        let values = (0..shape.iter().product::<usize>())
+            .map(|_| rng.range_f64(0.4, 0.6) as f32)
+            .collect();
+        let batch = HostBatch {
+            step: 0,
+            values,
+            shape,
+            forces: None,
+        };
+        let (_, loss) = model.train_step(&recipe, &mut optim, &batch, &device);
+        assert!(loss.is_finite(), "{name}: loss {loss}");
+    }
+}
