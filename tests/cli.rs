@@ -1,7 +1,8 @@
 //! End-to-end tests of the `sparsh` command: scene file in, dataset out.
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::{Child, Command, ExitStatus, Output};
+use std::time::{Duration, Instant};
 
 use sha2::{Digest, Sha256};
 
@@ -405,28 +406,60 @@ fn every_shard_layout_yields_the_same_dataset() {
     assert_same_tree(&whole, &sharded);
 }
 
+/// Waits for `child` until `deadline`; a child still running then is killed and fails the test
+/// (a hung run must not hang the suite).
+fn wait_until(child: &mut Child, deadline: Instant, what: &str) -> ExitStatus {
+    loop {
+        if let Some(status) = child.try_wait().unwrap() {
+            return status;
+        }
+        if Instant::now() > deadline {
+            child.kill().unwrap();
+            child.wait().unwrap();
+            panic!("{what}: still running after its time limit, killed");
+        }
+        std::thread::sleep(Duration::from_millis(2));
+    }
+}
+
 #[test]
 fn killed_run_resumes_to_identical_bytes() {
+    // Each run takes about a second in release; a minute is ample on a loaded machine.
+    let limit = Duration::from_secs(60);
     let tmp = tempfile::tempdir().unwrap();
     let scene = write_scene(tmp.path(), FAMILY_SCENE);
     let whole = tmp.path().join("whole");
     assert!(generate(&scene, &whole, &[]).status.success());
 
     let killed = tmp.path().join("killed");
-    let mut child = Command::new(env!("CARGO_BIN_EXE_sparsh"))
-        .args([
-            "--threads",
-            "1",
-            "generate",
-            scene.to_str().unwrap(),
-            "--out",
-        ])
-        .arg(&killed)
-        .spawn()
-        .unwrap();
+    let run = |extra: &[&str]| {
+        Command::new(env!("CARGO_BIN_EXE_sparsh"))
+            .args([
+                "--threads",
+                "1",
+                "generate",
+                scene.to_str().unwrap(),
+                "--out",
+                killed.to_str().unwrap(),
+            ])
+            .args(extra)
+            .spawn()
+            .unwrap()
+    };
+    let mut child = run(&[]);
     let first_part = killed.join("parts/000000.json");
+    let deadline = Instant::now() + limit;
     while !first_part.exists() {
-        std::thread::sleep(std::time::Duration::from_millis(2));
+        assert!(
+            child.try_wait().unwrap().is_none(),
+            "the run ended before recording a sequence"
+        );
+        if Instant::now() > deadline {
+            child.kill().unwrap();
+            child.wait().unwrap();
+            panic!("no sequence recorded within {limit:?}");
+        }
+        std::thread::sleep(Duration::from_millis(2));
     }
     child.kill().unwrap(); // SIGKILL
     child.wait().unwrap();
@@ -434,8 +467,9 @@ fn killed_run_resumes_to_identical_bytes() {
         !killed.join("manifest.json").exists(),
         "the run must be killed before it completes"
     );
-    let out = generate(&scene, &killed, &["--resume"]);
-    assert!(out.status.success(), "{}", stderr(&out));
+    let mut resumed = run(&["--resume"]);
+    let status = wait_until(&mut resumed, Instant::now() + limit, "generate --resume");
+    assert!(status.success(), "{status}");
     assert_same_tree(&whole, &killed);
 }
 

@@ -33,6 +33,7 @@ pub fn stderr(out: &Output) -> String {
 }
 
 /// A user error: non-zero exit, one line on stderr naming what is wrong, no panic.
+#[allow(dead_code)] // not every test crate checks errors
 pub fn assert_user_error(out: &Output, needle: &str) {
     let err = stderr(out);
     assert!(!out.status.success(), "should fail: {err}");

@@ -8,6 +8,7 @@
 //! [validation]
 //! check = "hertz"            # hertz | hertz_load | flat_punch | cone | cattaneo_mindlin
 //!                            # | bonded_layer | layered_vs_halfspace
+//!                            # | torsion_stuck | torsion_sliding
 //! tolerance = { force = 0.01, contact_radius = 0.02 }   # relative; others are reported only
 //! q_over_mu_p = 0.5          # cattaneo_mindlin: tangential load as a fraction of μP
 //! tangential_steps = 4       # cattaneo_mindlin: increments of the tangential shift
@@ -16,9 +17,11 @@
 //!
 //! The normal problem follows the scene's trajectory (its last frame is evaluated); a
 //! `cattaneo_mindlin` case then shifts the indenter along +x by Mindlin's δ_t for the requested
-//! Q/μP and compares the tangential force and the stick radius. Lengths measured from a solution:
-//! contact radius √(A/π) with A the area of the cells carrying pressure, stick radius likewise
-//! from the cells that stick.
+//! Q/μP and compares the tangential force and the stick radius; a `torsion_*` case twists the
+//! indenter about the gel normal along its trajectory (`rotation_deg` z) and compares the
+//! twisting moment with Lubkin's fully stuck or fully sliding limit. Lengths measured from a
+//! solution: contact radius √(A/π) with A the area of the cells carrying pressure, stick radius
+//! likewise from the cells that stick.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -46,6 +49,13 @@ pub enum Check {
     Cone,
     /// Sphere, then a tangential shift: tangential force and stick radius (Cattaneo–Mindlin).
     CattaneoMindlin,
+    /// Sphere pressed, then twisted about the gel normal by the trajectory's rotation β (friction
+    /// high enough that no cell slips): twisting moment against Lubkin's fully stuck
+    /// M = 16Ga³β/3 (Johnson §7.3).
+    TorsionStuck,
+    /// Sphere pressed, then twisted far past the stuck range: twisting moment against Lubkin's
+    /// sliding limit M = 3πμPa/16 under the Hertz pressure (Johnson §7.3).
+    TorsionSliding,
     /// Sphere on an incompressible bonded layer, with the scene's rung: force (Garcia & Garcia 2018).
     BondedLayer,
     /// The layered rung on a layer much thicker than the contact against the half-space rung.
@@ -440,6 +450,20 @@ fn contact_radius_mm(fields: &Fields) -> f64 {
     (fields.contact_area_mm2() / std::f64::consts::PI).sqrt()
 }
 
+/// Twisting moment about the vertical axis through `centre`, Σ ((x − x₀) q_y − (y − y₀) q_x) dA
+/// (N·mm).
+fn twisting_moment_n_mm(fields: &Fields, centre: [f64; 2]) -> f64 {
+    let g = fields.grid;
+    (0..g.len())
+        .map(|k| {
+            let (x, y) = (g.x_mm(k % g.nx) - centre[0], g.y_mm(k / g.nx) - centre[1]);
+            x * fields.traction_y_kpa[k] - y * fields.traction_x_kpa[k]
+        })
+        .sum::<f64>()
+        * g.cell_area_mm2()
+        * 1e-3
+}
+
 fn peak_pressure_kpa(fields: &Fields) -> f64 {
     fields.pressure_kpa.iter().copied().fold(0.0, f64::max)
 }
@@ -611,6 +635,26 @@ pub fn evaluate_case_with(
                     stick_mm,
                 ),
             ]
+        }
+        Check::TorsionStuck | Check::TorsionSliding => {
+            let r = count(run(scene, scene.solver, grid, &[])?);
+            let frames = scene.frames();
+            let (first, last) = (frames[0].pose, frames[frames.len() - 1].pose);
+            let force = hertz.force_n(r.approach_mm);
+            let a = hertz.contact_radius_mm(force);
+            let analytic = if case.check == Check::TorsionStuck {
+                let twist_rad = (last.rotation_deg.z - first.rotation_deg.z).to_radians();
+                let shear_kpa = gel.youngs_modulus_kpa / (2.0 * (1.0 + gel.poisson_ratio));
+                16.0 / 3.0 * shear_kpa * a.powi(3) * twist_rad * 1e-3
+            } else {
+                3.0 * std::f64::consts::PI / 16.0 * gel.friction * force * a
+            };
+            let centre = [last.position_mm.x, last.position_mm.y];
+            vec![v(
+                "moment (N·mm)",
+                analytic,
+                twisting_moment_n_mm(&r.fields, centre),
+            )]
         }
         Check::BondedLayer => {
             let r = count(run(scene, scene.solver, grid, &[])?);

@@ -1,5 +1,6 @@
 //! The official Sparsh layouts: our writer against our reader and, when Python is present,
-//! against Python's own pickle module.
+//! against Python's own pickle module (its absence fails the test when `SPARSH_REQUIRE_PYTHON`
+//! is set, as in CI).
 
 use image::RgbImage;
 use sparsh_data::sparsh_pkl::{
@@ -56,6 +57,10 @@ fn python_reads_the_pickles() {
         .output()
         .is_err()
     {
+        assert!(
+            std::env::var_os("SPARSH_REQUIRE_PYTHON").is_none(),
+            "SPARSH_REQUIRE_PYTHON is set but python3 is not available"
+        );
         eprintln!("python3 not found: skipping the Python cross-check");
         return;
     }
