@@ -7,33 +7,7 @@ use std::time::{Duration, Instant};
 use sha2::{Digest, Sha256};
 
 mod common;
-use common::{assert_user_error, generate, sparsh, stderr, write_scene};
-
-const SMALL_SCENE: &str = r#"
-seed = 11
-solver = "geometric"
-[sensor]
-preset = "digit"
-width_px = 80
-height_px = 60
-mm_per_px = 0.2
-fps = 10.0
-[gel]
-youngs_modulus_kpa = 300.0
-thickness_mm = 3.0
-[indenter]
-shape = "sphere"
-radius_mm = 6.0
-[[trajectory]]
-time_s = 0.0
-position_mm = [-1.0, 0.0, 0.2]
-[[trajectory]]
-time_s = 0.6
-position_mm = [-1.0, 0.0, -0.8]
-[[trajectory]]
-time_s = 1.2
-position_mm = [1.0, 0.0, -0.8]
-"#;
+use common::{SMALL_SCENE, assert_user_error, generate, sparsh, stderr, write_scene};
 
 fn files_under(dir: &Path) -> Vec<PathBuf> {
     let mut files = Vec::new();

@@ -10,7 +10,7 @@ use std::path::{Path, PathBuf};
 use std::process::Output;
 
 mod common;
-use common::{RECIPE, generate, sparsh, stderr, write_scene};
+use common::{RECIPE, SHARDED_DATASET, SMALL_SCENE, generate, sparsh, stderr, write_scene};
 
 fn checkout(path: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))
@@ -114,40 +114,13 @@ fn validate_runs_the_cases_of_a_directory() {
     assert!(graded.iter().all(|l| l.ends_with("ok")), "{table}");
 }
 
-/// A 12-frame press-and-slide scene on 80 × 60 pixels.
-const SCENE: &str = r#"
-seed = 11
-solver = "geometric"
-[sensor]
-preset = "digit"
-width_px = 80
-height_px = 60
-mm_per_px = 0.2
-fps = 10.0
-[gel]
-youngs_modulus_kpa = 300.0
-thickness_mm = 3.0
-[indenter]
-shape = "sphere"
-radius_mm = 6.0
-[[trajectory]]
-time_s = 0.0
-position_mm = [-1.0, 0.0, 0.2]
-[[trajectory]]
-time_s = 0.6
-position_mm = [-1.0, 0.0, -0.8]
-[[trajectory]]
-time_s = 1.2
-position_mm = [1.0, 0.0, -0.8]
-"#;
-
 /// `bench` with two rungs and two strides: one row each, in order, every one of the scene's
 /// 1.2 s × 10 fps = 12 frames, the ratio column the frames/s over the first row's, and the stage
 /// shares adding up to 100 %.
 #[test]
 fn bench_times_every_rung_and_stride() {
     let tmp = tempfile::tempdir().unwrap();
-    let scene = write_scene(tmp.path(), SCENE);
+    let scene = write_scene(tmp.path(), SMALL_SCENE);
     let out = sparsh(&[
         "bench",
         scene.to_str().unwrap(),
@@ -245,33 +218,6 @@ fn bench_optics_rows_agree_with_taxims_times() {
     }
 }
 
-/// Six sequences of eight frames (two per split of the family), a pressure field on 80 × 60.
-const DATASET: &str = r#"
-seed = 21
-[output]
-fields = ["p"]
-[[family]]
-name = "presses"
-sequences = 6
-frames_per_sequence = 8
-solver = "geometric"
-[family.sensor]
-preset = "digit"
-width_px = 80
-height_px = 60
-mm_per_px = 0.2
-[[family.indenters]]
-shape = "sphere"
-radius_mm = [3.0, 6.0]
-[[family.indenters]]
-shape = "cylinder"
-radius_mm = 1.5
-split = "test"
-[family.motion]
-kind = "press_slide"
-depth_mm = [0.3, 0.8]
-"#;
-
 /// The safetensors header of `path` (a little-endian u64 length, then that much JSON) and the
 /// length of the tensor data after it.
 fn safetensors_header(path: &Path) -> (serde_json::Value, usize) {
@@ -294,7 +240,7 @@ fn safetensors_header(path: &Path) -> (serde_json::Value, usize) {
 #[test]
 fn pretrain_smoke_run_then_probe_its_encoder() {
     let tmp = tempfile::tempdir().unwrap();
-    let scene = write_scene(tmp.path(), DATASET);
+    let scene = write_scene(tmp.path(), SHARDED_DATASET);
     let ds = tmp.path().join("ds");
     let out = generate(&scene, &ds, &[]);
     assert!(out.status.success(), "{}", stderr(&out));

@@ -7,34 +7,7 @@ use std::path::Path;
 use std::process::{Command, Output};
 
 mod common;
-use common::{RECIPE, assert_user_error, generate, sparsh, stderr, write_scene};
-
-/// Six short sequences (two per shard of three) with a pressure field, on a small sensor.
-const SCENE: &str = r#"
-seed = 21
-[output]
-fields = ["p"]
-[[family]]
-name = "presses"
-sequences = 6
-frames_per_sequence = 8
-solver = "geometric"
-[family.sensor]
-preset = "digit"
-width_px = 80
-height_px = 60
-mm_per_px = 0.2
-[[family.indenters]]
-shape = "sphere"
-radius_mm = [3.0, 6.0]
-[[family.indenters]]
-shape = "cylinder"
-radius_mm = 1.5
-split = "test"
-[family.motion]
-kind = "press_slide"
-depth_mm = [0.3, 0.8]
-"#;
+use common::{RECIPE, SHARDED_DATASET, assert_user_error, generate, sparsh, stderr, write_scene};
 
 fn stdout(out: &Output) -> String {
     String::from_utf8_lossy(&out.stdout).into_owned()
@@ -48,7 +21,7 @@ fn frame_of(s: usize) -> String {
 #[test]
 fn verify_reports_done_and_missing_shards() {
     let tmp = tempfile::tempdir().unwrap();
-    let scene = write_scene(tmp.path(), SCENE);
+    let scene = write_scene(tmp.path(), SHARDED_DATASET);
     let ds = tmp.path().join("ds");
     for shard in ["0/3", "2/3"] {
         let out = generate(&scene, &ds, &["--shard", shard]);
@@ -132,7 +105,7 @@ fn verify_reports_done_and_missing_shards() {
 #[test]
 fn verify_counts_sequences_of_an_interrupted_unsharded_run() {
     let tmp = tempfile::tempdir().unwrap();
-    let scene = write_scene(tmp.path(), SCENE);
+    let scene = write_scene(tmp.path(), SHARDED_DATASET);
     let ds = tmp.path().join("ds");
     assert!(generate(&scene, &ds, &[]).status.success());
     // as if killed before sequences 3 to 5 and the manifest were recorded
@@ -161,7 +134,7 @@ fn verify_counts_sequences_of_an_interrupted_unsharded_run() {
 #[test]
 fn resume_renders_again_what_verify_flags() {
     let tmp = tempfile::tempdir().unwrap();
-    let scene = write_scene(tmp.path(), SCENE);
+    let scene = write_scene(tmp.path(), SHARDED_DATASET);
     let ds = tmp.path().join("ds");
     assert!(generate(&scene, &ds, &[]).status.success());
     let frame = ds.join("frames/000019.png");
@@ -219,7 +192,7 @@ fn progress_lines<'a>(err: &'a str, command: &str) -> Vec<&'a str> {
 #[test]
 fn generate_prints_progress_lines_without_a_terminal_unless_quiet() {
     let tmp = tempfile::tempdir().unwrap();
-    let scene = write_scene(tmp.path(), SCENE);
+    let scene = write_scene(tmp.path(), SHARDED_DATASET);
     let (a, b) = (tmp.path().join("a"), tmp.path().join("b"));
     let (sa, sb) = (scene.to_str().unwrap(), a.to_str().unwrap());
     let out = piped(&[
@@ -272,7 +245,7 @@ fn generate_prints_progress_lines_without_a_terminal_unless_quiet() {
 #[test]
 fn pretrain_and_probe_print_progress_lines_without_a_terminal_unless_quiet() {
     let tmp = tempfile::tempdir().unwrap();
-    let scene = write_scene(tmp.path(), SCENE);
+    let scene = write_scene(tmp.path(), SHARDED_DATASET);
     let ds = tmp.path().join("ds");
     assert!(generate(&scene, &ds, &[]).status.success());
     let recipe = tmp.path().join("recipe.toml");

@@ -65,3 +65,59 @@ pub fn generate(scene: &Path, out: &Path, extra: &[&str]) -> Output {
     args.extend_from_slice(extra);
     sparsh(&args)
 }
+
+/// A 12-frame press-and-slide of a 6 mm sphere on an 80 × 60 DIGIT, geometric rung.
+#[allow(dead_code)] // not every test crate uses it
+pub const SMALL_SCENE: &str = r#"
+seed = 11
+solver = "geometric"
+[sensor]
+preset = "digit"
+width_px = 80
+height_px = 60
+mm_per_px = 0.2
+fps = 10.0
+[gel]
+youngs_modulus_kpa = 300.0
+thickness_mm = 3.0
+[indenter]
+shape = "sphere"
+radius_mm = 6.0
+[[trajectory]]
+time_s = 0.0
+position_mm = [-1.0, 0.0, 0.2]
+[[trajectory]]
+time_s = 0.6
+position_mm = [-1.0, 0.0, -0.8]
+[[trajectory]]
+time_s = 1.2
+position_mm = [1.0, 0.0, -0.8]
+"#;
+
+/// Six short sequences (two per shard of three) with a pressure field, on a small sensor.
+#[allow(dead_code)] // not every test crate uses it
+pub const SHARDED_DATASET: &str = r#"
+seed = 21
+[output]
+fields = ["p"]
+[[family]]
+name = "presses"
+sequences = 6
+frames_per_sequence = 8
+solver = "geometric"
+[family.sensor]
+preset = "digit"
+width_px = 80
+height_px = 60
+mm_per_px = 0.2
+[[family.indenters]]
+shape = "sphere"
+radius_mm = [3.0, 6.0]
+[[family.indenters]]
+shape = "cylinder"
+radius_mm = 1.5
+split = "test"
+[family.motion]
+kind = "press_slide"
+depth_mm = [0.3, 0.8]
+"#;
