@@ -3,9 +3,7 @@
 //! code (`tests/numpy_losses.py`). Skips, saying so, when `python3` with numpy is unavailable
 //! (`pip install numpy`), unless `SPARSH_REQUIRE_PYTHON` is set, when it fails instead.
 
-use std::io::Write;
-use std::path::Path;
-use std::process::{Command, Stdio};
+mod common;
 
 use burn::module::{Module, ModuleVisitor, Param};
 use burn::prelude::*;
@@ -24,44 +22,10 @@ use sparsh_ssl::vit::VitConfig;
 /// Relative tolerance of an f32 result against the float64 reference.
 const F32_TOL: f64 = 1e-5;
 
-fn numpy_available() -> bool {
-    Command::new("python3")
-        .args(["-c", "import numpy"])
-        .output()
-        .is_ok_and(|o| o.status.success())
-}
-
 /// The reference's answer to `case`, or `None` (a skip) without python3 + numpy.
 fn reference(case: Value) -> Option<Value> {
-    if !numpy_available() {
-        assert!(
-            std::env::var_os("SPARSH_REQUIRE_PYTHON").is_none(),
-            "SPARSH_REQUIRE_PYTHON is set but python3 with numpy is not available"
-        );
-        eprintln!("skipping: python3 with numpy not found (pip install numpy)");
-        return None;
-    }
-    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/numpy_losses.py");
-    let mut child = Command::new("python3")
-        .arg(&script)
-        .stdin(Stdio::piped())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    child
-        .stdin
-        .take()
-        .unwrap()
-        .write_all(case.to_string().as_bytes())
-        .unwrap();
-    let out = child.wait_with_output().unwrap();
-    assert!(
-        out.status.success(),
-        "numpy reference failed: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    Some(serde_json::from_slice(&out.stdout).unwrap())
+    common::python_ready("numpy_losses")
+        .then(|| common::run_script("numpy_losses.py", &[], &case.to_string()))
 }
 
 fn normal(rng: &mut Rng, n: usize, mean: f64, std: f64) -> Vec<f32> {
