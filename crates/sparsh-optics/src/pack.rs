@@ -178,6 +178,31 @@ fn shape_of<R: std::io::Read>(a: &npyz::NpyFile<R>) -> Vec<usize> {
     a.shape().iter().map(|&s| s as usize).collect()
 }
 
+/// Largest array a calibration pack may hold (bytes): Taxim's largest, 48 frames of 640×480×3,
+/// is 44 MB. A header claiming more is refused before anything is allocated.
+pub const MAX_PACK_ARRAY_BYTES: u64 = 1 << 30;
+
+/// Refuses an array whose header claims more than [`MAX_PACK_ARRAY_BYTES`].
+fn check_size<R: std::io::Read>(
+    a: &npyz::NpyFile<R>,
+    name: &str,
+    item_bytes: u64,
+    err: &ErrFn,
+) -> Result<(), PackError> {
+    let bytes = a.len().saturating_mul(item_bytes);
+    if bytes > MAX_PACK_ARRAY_BYTES {
+        return Err(err(
+            name,
+            format!(
+                "its header claims {:?} ({bytes} bytes), more than the {MAX_PACK_ARRAY_BYTES} a \
+                 pack array may hold",
+                a.shape()
+            ),
+        ));
+    }
+    Ok(())
+}
+
 fn read_u8<R: std::io::Read + std::io::Seek>(
     npz: &mut npyz::npz::NpzArchive<R>,
     name: &str,
@@ -189,9 +214,16 @@ fn read_u8<R: std::io::Read + std::io::Seek>(
         return Err(err(name, "Fortran-ordered arrays are not supported".into()));
     }
     let dtype = a.dtype().descr();
-    let data = a
-        .into_vec::<u8>()
-        .map_err(|e| err(name, format!("expected uint8, dtype is {dtype}: {e}")))?;
+    if !matches!(dtype.trim_matches('\''), "|u1" | "<u1" | ">u1") {
+        return Err(err(name, format!("expected uint8, dtype is {dtype}")));
+    }
+    check_size(&a, name, 1, err)?;
+    let data = a.into_vec::<u8>().map_err(|e| {
+        err(
+            name,
+            format!("the data ends before the {shape:?} its header declares ({e})"),
+        )
+    })?;
     Ok((shape, data))
 }
 
@@ -214,6 +246,7 @@ fn read_f64<R: std::io::Read + std::io::Seek>(
     let npyz::DType::Plain(ts) = &dtype else {
         return Err(unsupported());
     };
+    check_size(&a, name, ts.size_field(), err)?;
     let data: Vec<f64> = match (ts.type_char(), ts.size_field()) {
         (TypeChar::Float, 8) => a.into_vec::<f64>().map_err(bad)?,
         (TypeChar::Float, 4) => conv(a.into_vec::<f32>().map_err(bad)?),
@@ -250,6 +283,69 @@ fn conv<T: Into<f64> + Copy>(v: Vec<T>) -> Vec<f64> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A zip of `.npy` entries, each a header with `descr` and `shape` and `data` after it.
+    fn npz(entries: &[(&str, &str, &str, &[u8])]) -> Vec<u8> {
+        use std::io::Write;
+        let mut zip = zip::ZipWriter::new(std::io::Cursor::new(Vec::new()));
+        for (name, descr, shape, data) in entries {
+            let mut header =
+                format!("{{'descr': '{descr}', 'fortran_order': False, 'shape': {shape}, }}");
+            while (10 + header.len() + 1) % 64 != 0 {
+                header.push(' ');
+            }
+            header.push('\n');
+            zip.start_file(*name, zip::write::FileOptions::default())
+                .unwrap();
+            zip.write_all(b"\x93NUMPY\x01\x00").unwrap();
+            zip.write_all(&(header.len() as u16).to_le_bytes()).unwrap();
+            zip.write_all(header.as_bytes()).unwrap();
+            zip.write_all(data).unwrap();
+        }
+        zip.finish().unwrap().into_inner()
+    }
+
+    /// Headers claiming 92 GB, a wrong dtype or more data than follows are refused on one
+    /// line naming the array, before anything is allocated.
+    #[test]
+    fn bad_array_headers_are_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let cases: [(&str, &str, &str, &[u8], &str); 3] = [
+            (
+                "huge",
+                "|u1",
+                "(100000, 480, 640, 3)",
+                &[0; 16],
+                "more than the",
+            ),
+            (
+                "float",
+                "<f4",
+                "(2, 2, 3)",
+                &[0; 48],
+                "expected uint8, dtype is '<f4'",
+            ),
+            (
+                "short",
+                "|u1",
+                "(2, 2, 3)",
+                &[0; 5],
+                "the data ends before the [2, 2, 3]",
+            ),
+        ];
+        for (label, descr, shape, data, needle) in cases {
+            let path = dir.path().join(format!("{label}.npz"));
+            std::fs::write(&path, npz(&[("f0.npy", descr, shape, data)])).unwrap();
+            let line = CalibrationPack::read(&path).unwrap_err().to_string();
+            assert!(
+                line.contains(&format!("{label}.npz"))
+                    && line.contains("f0")
+                    && line.contains(needle),
+                "{label}: {line}"
+            );
+            assert!(!line.contains('\n'), "{line}");
+        }
+    }
 
     #[test]
     fn frame_sets_pick_indices_and_parse() {
