@@ -104,11 +104,10 @@ impl std::fmt::Display for Validity {
             Validity::Outside {
                 limit: Limit::Rung,
                 value,
-                bound,
+                ..
             } => write!(
                 f,
-                "the rung meets the {:.1} % force tolerance nowhere in the study (its best: {:.1} %)",
-                100.0 * bound,
+                "its force error is above the tolerance in every studied case (best {:.1} %)",
                 100.0 * value
             ),
             Validity::Outside {
