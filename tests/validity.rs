@@ -126,3 +126,37 @@ depth_mm = 0.5
         stderr(&out)
     );
 }
+
+/// `sparsh limits` prints each rung's limits as the validity check reads them, and refuses a
+/// tolerance outside (0, 1) on one line.
+#[test]
+fn limits_prints_the_checked_limits() {
+    use sparsh_scene::auto::SolverTable;
+    use sparsh_scene::{RungLimits, SolverKind};
+    let out = common::sparsh(&["limits", "--tolerance", "0.05"]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let table = String::from_utf8(out.stdout).unwrap();
+    for rung in SolverKind::ALL {
+        let limits = RungLimits::of(SolverTable::builtin(), rung, 0.05);
+        let row = table
+            .lines()
+            .find(|l| l.starts_with(&format!("| {} |", rung.name())))
+            .unwrap_or_else(|| panic!("no row for {rung:?}: {table}"));
+        let cells: Vec<&str> = row.split('|').map(str::trim).collect();
+        match limits.max_a_over_h {
+            Some(a) => {
+                assert_eq!(cells[2].parse::<f64>().unwrap(), a, "{row}");
+                assert_eq!(
+                    cells[3].parse::<f64>().unwrap(),
+                    limits.max_depth_over_h,
+                    "{row}"
+                );
+            }
+            None => assert_eq!(&cells[2..4], ["nowhere", "nowhere"], "{row}"),
+        }
+    }
+    assert_user_error(
+        &common::sparsh(&["limits", "--tolerance", "1.5"]),
+        "--tolerance: must be a relative force error in (0, 1), got 1.5",
+    );
+}
