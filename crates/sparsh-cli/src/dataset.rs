@@ -233,7 +233,6 @@ pub struct OutsideValidity {
 
 impl OutsideValidity {
     fn note(&mut self, sequence: usize, frame: &Frame, tolerance: f64) {
-        self.frames += 1;
         let here = (
             sequence,
             frame.target.index,
@@ -241,9 +240,10 @@ impl OutsideValidity {
             frame.validity,
             tolerance,
         );
-        if self.first.is_none_or(|f| (f.0, f.1) > (here.0, here.1)) {
-            self.first = Some(here);
-        }
+        self.merge(&OutsideValidity {
+            frames: 1,
+            first: Some(here),
+        });
     }
 
     fn merge(&mut self, other: &OutsideValidity) {

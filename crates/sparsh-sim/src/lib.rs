@@ -102,6 +102,8 @@ pub struct Simulator {
     scene: Scene,
     targets: Vec<FrameTarget>,
     rung: SolverKind,
+    /// Where `rung` holds at the scene's tolerance.
+    limits: RungLimits,
     solver: Box<dyn ContactSolver>,
     renderer: ImageFormation,
     previous_pose: Option<Pose>,
@@ -121,6 +123,7 @@ impl Simulator {
         Ok(Simulator {
             targets: scene.frames(),
             rung: scene.solver,
+            limits: RungLimits::of(SolverTable::builtin(), scene.solver, scene.tolerance),
             scene,
             solver,
             renderer,
@@ -208,7 +211,7 @@ impl Simulator {
 
     fn validity(&self, solved: &Solved) -> Validity {
         let (a_over_h, depth_over_h) = self.frame_ratios(solved);
-        RungLimits::of(SolverTable::builtin(), self.rung, self.scene.tolerance).check(
+        self.limits.check(
             solved.fields.contact.contains(&true),
             a_over_h,
             depth_over_h,
@@ -233,14 +236,12 @@ impl Simulator {
         let Some(&top) = higher.last() else {
             return Ok(None);
         };
+        let limits_of = |k| RungLimits::of(SolverTable::builtin(), k, self.scene.tolerance);
         let rung = higher
             .into_iter()
-            .find(|&k| {
-                RungLimits::of(SolverTable::builtin(), k, self.scene.tolerance)
-                    .check(true, a_over_h, depth_over_h)
-                    .is_ok()
-            })
+            .find(|&k| limits_of(k).check(true, a_over_h, depth_over_h).is_ok())
             .unwrap_or(top);
+        let limits = limits_of(rung);
         let mut solver = solver_for(rung, &self.scene.gel, self.scene.mechanics_grid());
         let mut previous = None;
         for earlier in &self.targets[..target.index] {
@@ -251,6 +252,7 @@ impl Simulator {
         let solved =
             Simulator::solve_contact(&self.scene, solver.as_mut(), target, previous.as_ref())?;
         self.rung = rung;
+        self.limits = limits;
         self.solver = solver;
         Ok(Some(solved))
     }
