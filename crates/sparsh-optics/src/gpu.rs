@@ -1,8 +1,9 @@
 //! The image-formation models as wgpu compute shaders (`shaders/*.wgsl` at the repository root):
 //! the same maths as the CPU path in f32, one invocation per pixel, so the image of a surface is
 //! the same on every run. Buffers and the pipeline are made once per renderer and reused for
-//! every frame; only the surface is uploaded and the image read back before rounding, which the
-//! CPU does as on its own path.
+//! every frame; only the surface (with shadows, and its tile bounds for the shortcuts of
+//! [`crate::shadow::light_visibility`]) is uploaded and the image read back before rounding,
+//! which the CPU does as on its own path.
 
 use std::sync::{Arc, Mutex, OnceLock};
 
@@ -12,7 +13,7 @@ use wgpu::util::DeviceExt;
 use sparsh_scene::Light;
 
 use crate::photometric::camera_mm;
-use crate::shadow::ShadowSettings;
+use crate::shadow::{HeightField, MIN_TILE_SHIFT, ShadowSettings};
 use crate::{CalibratedRenderer, PhotometricRenderer, Renderer, Surface};
 
 const COMMON_WGSL: &str = include_str!("../../../shaders/common.wgsl");
@@ -94,7 +95,8 @@ struct Params {
     nodes: u32,
     shadow_steps: u32,
     perspective: u32,
-    unused: [u32; 2],
+    tile_shift: u32,
+    tile_offset: u32,
     cell_mm: f32,
     gain: f32,
     specular: f32,
@@ -103,6 +105,8 @@ struct Params {
     max_march_mm: f32,
     led_radius_mm: f32,
     max_height_mm: f32,
+    height_tol_mm: f32,
+    unused: [f32; 3],
 }
 
 impl Params {
@@ -164,25 +168,33 @@ impl GpuRenderer {
 
     /// The image of a deformed surface before rounding (RGB, 0–255 scale).
     pub fn render_linear(&self, surface: &Surface) -> Result<Vec<[f32; 3]>, GpuError> {
+        self.render_frame(surface, true)
+    }
+
+    /// [`GpuRenderer::render_linear`] with or without the shadows' tile shortcuts (the same
+    /// image).
+    fn render_frame(&self, surface: &Surface, shortcuts: bool) -> Result<Vec<[f32; 3]>, GpuError> {
         assert_eq!(
             (surface.grid.nx, surface.grid.ny),
             (self.width_px, self.height_px),
             "surface grid and image differ in size"
         );
         let fields = [surface.uz_mm, surface.ux_mm, surface.uy_mm];
-        let data: Vec<f32> = fields[..self.fields]
+        let mut data: Vec<f32> = fields[..self.fields]
             .iter()
             .flat_map(|f| f.iter().map(|&v| v as f32))
             .collect();
-        let max_height_mm = surface
-            .uz_mm
-            .iter()
-            .fold(f64::NEG_INFINITY, |m, u| m.max(-u));
-        let params = Params {
+        let mut params = Params {
             cell_mm: surface.grid.cell_mm as f32,
-            max_height_mm: max_height_mm as f32,
             ..self.uniforms
         };
+        if params.shadow_steps > 0 {
+            let field = HeightField::from_uz(surface.uz_mm, surface.grid);
+            params.max_height_mm = field.max_mm as f32;
+            if shortcuts {
+                push_tile_bounds(&field, &mut params, &mut data);
+            }
+        }
         let _busy = self.busy.lock().unwrap_or_else(|e| e.into_inner());
         let ctx = &self.context;
         ctx.queue
@@ -226,6 +238,30 @@ impl GpuRenderer {
         };
         self.readback.unmap();
         Ok(pixels)
+    }
+}
+
+/// Appends the shadow shortcuts' tile bounds of `field` to the surface data (per tile: the
+/// block's highest point and steepest slopes along x and y, as [`light_visibility`] uses them)
+/// and sets their uniforms.
+///
+/// [`light_visibility`]: crate::shadow::light_visibility
+fn push_tile_bounds(field: &HeightField, params: &mut Params, data: &mut Vec<f32>) {
+    let g = field.grid;
+    // Conservative: a height the shader samples may exceed the f64 field's bounds by a few f32
+    // roundings of heights up to H = max |h| and of positions up to N cells (moved along slopes
+    // up to S); 2^-18 covers 32 ulps of each.
+    let h = field.height_mm.iter().fold(0.0f64, |m, h| m.max(h.abs()));
+    let s = field
+        .block_slope
+        .iter()
+        .fold(0.0f64, |m, s| m.max(s[0] + s[1]));
+    let extent_mm = g.nx.max(g.ny) as f64 * g.cell_mm;
+    params.height_tol_mm = ((h + extent_mm * s) / f64::from(1 << 18)) as f32;
+    params.tile_shift = field.tile_shift;
+    params.tile_offset = data.len() as u32;
+    for (m, s) in field.block_max_mm.iter().zip(&field.block_slope) {
+        data.extend([*m as f32, s[0] as f32, s[1] as f32]);
     }
 }
 
@@ -318,6 +354,12 @@ fn build(
     let device = &context.device;
     let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
     let pixels = (width_px * height_px) as u64;
+    // with shadows, room for the bounds of the smallest tiles
+    let tile = 1 << MIN_TILE_SHIFT;
+    let tile_values = match uniforms.shadow_steps {
+        0 => 0,
+        _ => 3 * width_px.div_ceil(tile) * height_px.div_ceil(tile),
+    };
     let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
         label: Some("sparsh-optics"),
         source: wgpu::ShaderSource::Wgsl([COMMON_WGSL, shader].concat().into()),
@@ -338,7 +380,7 @@ fn build(
     });
     let surface = device.create_buffer(&wgpu::BufferDescriptor {
         label: Some("surface"),
-        size: pixels * fields as u64 * 4,
+        size: (pixels * fields as u64 + tile_values as u64) * 4,
         usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
         mapped_at_creation: false,
     });
@@ -390,4 +432,47 @@ fn build(
         height_px,
         busy: Arc::new(Mutex::new(())),
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::photometric::shadow_settings;
+    use sparsh_scene::SensorConfig;
+
+    /// The tile shortcuts change nothing on the GPU either: every pixel of ball presses under
+    /// two presets' LEDs equals the full march's, bit for bit.
+    #[test]
+    fn the_tile_shortcuts_are_exact_on_the_gpu() {
+        let context = match GpuContext::shared() {
+            Ok(context) => context,
+            Err(e) if std::env::var("SPARSH_REQUIRE_GPU").as_deref() == Ok("1") => {
+                panic!("SPARSH_REQUIRE_GPU=1 but {e}")
+            }
+            Err(e) => return eprintln!("skipped: {e}"),
+        };
+        for (preset, w, h) in [("gelsight2017", 320, 240), ("digit", 640, 480)] {
+            let mut sensor = SensorConfig::preset(preset).unwrap();
+            sensor.mm_per_px *= sensor.width_px as f64 / w as f64;
+            (sensor.width_px, sensor.height_px) = (w, h);
+            let grid = sensor.grid();
+            let cpu =
+                PhotometricRenderer::new(&sensor, Some(shadow_settings(&sensor, 32))).unwrap();
+            let gpu = GpuRenderer::new(&Renderer::Photometric(cpu), &context).unwrap();
+            for (centre, radius) in [([1.0, -0.5], 1.2), ([-2.0, 1.5], 1.8)] {
+                let uz = crate::ball::ball_press_uz_mm(grid, centre, radius, 2.0).unwrap();
+                let zeros = vec![0.0; grid.len()];
+                let surface = Surface {
+                    grid,
+                    ux_mm: &zeros,
+                    uy_mm: &zeros,
+                    uz_mm: &uz,
+                };
+                let fast = gpu.render_frame(&surface, true).unwrap();
+                let full = gpu.render_frame(&surface, false).unwrap();
+                let differ = fast.iter().zip(&full).filter(|(a, b)| a != b).count();
+                assert_eq!(differ, 0, "{preset} {w}×{h}, press at {centre:?}");
+            }
+        }
+    }
 }

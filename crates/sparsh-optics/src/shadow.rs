@@ -18,7 +18,8 @@
 //!
 //! Two exact shortcuts skip rays that tile bounds prove fully lit (v = 1): the surface along the
 //! ray never rises faster than m_c (tile maxima of the slopes), or never above the cone
-//! h_P + t·m_c (tile maxima of the heights). They change the time, not the result.
+//! h_P + t·m_c (tile maxima of the heights). They change the time, not the result. The GPU
+//! shader takes the same shortcuts on the same tile bounds, with margins for its f32 arithmetic.
 
 use rayon::prelude::*;
 use sparsh_scene::{Grid, Light};
@@ -58,11 +59,17 @@ pub fn sample_bilinear(field: &[f64], grid: Grid, x_mm: f64, y_mm: f64) -> f64 {
     top * (1.0 - ty) + bottom * ty
 }
 
+/// Smallest [`tile_shift`]: tiles are at least 4 cells on a side.
+pub(crate) const MIN_TILE_SHIFT: u32 = 2;
+
 /// Side of the tiles whose bounds let [`light_visibility`] skip rays that clear everything:
 /// the power of two of cells nearest 0.5 mm, at least 4 (on a ball press under the GelSight
 /// LEDs, 0.5 mm tiles balanced marched samples against probes at 0.059 and 0.0295 mm cells).
 fn tile_shift(cell_mm: f64) -> u32 {
-    (0.5 / cell_mm).log2().round().clamp(2.0, 10.0) as u32
+    (0.5 / cell_mm)
+        .log2()
+        .round()
+        .clamp(MIN_TILE_SHIFT as f64, 10.0) as u32
 }
 
 /// The surface height h = −u_z (mm toward the camera) on a grid, with its maximum and, over
@@ -79,13 +86,13 @@ pub struct HeightField {
     /// Tiles along x and y.
     tiles: [usize; 2],
     /// Tiles are 2^`tile_shift` cells on a side.
-    tile_shift: u32,
+    pub(crate) tile_shift: u32,
     /// Highest point within each tile and its eight neighbours (mm).
-    block_max_mm: Vec<f64>,
+    pub(crate) block_max_mm: Vec<f64>,
     /// Steepest slopes |∂h/∂x|, |∂h/∂y| of the bilinear surface over the cells whose lower
     /// corner lies within each tile and its eight neighbours: max |h(i+1, j) − h(i, j)| / cell
     /// and max |h(i, j+1) − h(i, j)| / cell.
-    block_slope: Vec<[f64; 2]>,
+    pub(crate) block_slope: Vec<[f64; 2]>,
 }
 
 impl HeightField {
