@@ -92,7 +92,7 @@ pub fn load(path: &Path, size: [usize; 2]) -> Result<LabelledData, Error> {
 /// Loads a directory written by `sparsh generate`.
 pub fn load_generated(dir: &Path, size: [usize; 2]) -> Result<LabelledData, Error> {
     let labels = read_generated_labels(dir)?;
-    let dataset = Dataset::load_generated(dir, size)?;
+    let dataset = Dataset::load_generated(dir, size)?.into_decoded()?;
     if dataset.sequences.len() != labels.len() {
         return Err(Error::file(
             dir.join("labels.jsonl"),

@@ -881,7 +881,7 @@ fn load_force_batch(
         let pre = prepare(&picked, Some(&bg_img), size, &label_path, &ctx)?;
         out.push((
             Sequence {
-                frames: pre,
+                frames: Sequence::decoded(pre),
                 forces: Some(rows.iter().map(|r| r.map(|c| c as f32)).collect()),
                 rest_frame: None,
             },
@@ -971,7 +971,7 @@ fn load_pose_bag(path: &Path, size: [usize; 2]) -> Result<(Sequence, SequenceLab
         .filter(|c| !c.is_empty());
     Ok((
         Sequence {
-            frames: pre,
+            frames: Sequence::decoded(pre),
             forces: None,
             rest_frame: None,
         },
@@ -1028,7 +1028,7 @@ fn load_textile_clip(dir: &Path, size: [usize; 2]) -> Result<(Sequence, Sequence
     let class = name.unwrap_or_else(|| label.to_string());
     Ok((
         Sequence {
-            frames: pre,
+            frames: Sequence::decoded(pre),
             forces: None,
             rest_frame: None,
         },
@@ -1101,7 +1101,7 @@ fn load_grasp_file(
             let pre = prepare(&picked, None, size, path, &what)?;
             out.push((
                 Sequence {
-                    frames: pre,
+                    frames: Sequence::decoded(pre),
                     forces: None,
                     rest_frame: None,
                 },
@@ -1414,12 +1414,17 @@ mod tests {
         assert_eq!(t1[0].pose_change_se2, None);
         let seq = &data.dataset.sequences[0];
         assert_eq!(seq.forces.as_ref().unwrap()[1], [0.3, -0.2, 1.5]);
-        assert_eq!(seq.frames[0].len(), 3 * SIZE[0] * SIZE[1]);
+        assert_eq!(
+            seq.frames[0].decoded().unwrap().len(),
+            3 * SIZE[0] * SIZE[1]
+        );
         // Trajectory 1 starts with frame 0, the background: a uniform 0.5 difference.
-        let first = &data.dataset.sequences[1].frames[0];
+        let first = data.dataset.sequences[1].frames[0].decoded().unwrap();
         assert!(first.iter().all(|&v| v == 127.0 / 255.0));
         assert!(
             data.dataset.sequences[0].frames[0]
+                .decoded()
+                .unwrap()
                 .iter()
                 .any(|&v| v != 127.0 / 255.0)
         );
@@ -1612,11 +1617,15 @@ mod tests {
         // No background: the raw image.
         assert!(
             data.dataset.sequences[1].frames[0]
+                .decoded()
+                .unwrap()
                 .iter()
                 .all(|&v| v == 200.0 / 255.0)
         );
         assert!(
             data.dataset.sequences[0].frames[1]
+                .decoded()
+                .unwrap()
                 .iter()
                 .all(|&v| v == 40.0 / 255.0)
         );

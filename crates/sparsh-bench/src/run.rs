@@ -517,7 +517,9 @@ pub fn run(
                 .collect::<Result<_, _>>()?;
             let images = |rows: &[usize]| -> HostBatch {
                 let p: Vec<usize> = rows.iter().map(|&r| picks[r]).collect();
-                sampler.batch(&p, &AugmentConfig::none(), 0, 0)
+                sampler
+                    .batch(&p, &AugmentConfig::none(), 0, 0)
+                    .expect("TacBench's datasets are decoded when they load")
             };
             let mut tokens = match enc.kind {
                 EncoderKind::Pretrained | EncoderKind::Random => Some(encode_all(

@@ -36,6 +36,35 @@ struct Cli {
     command: Command,
 }
 
+/// Where a learning command computes.
+#[derive(Debug, clap::Args)]
+struct DeviceArgs {
+    /// cpu (burn's CPU backend), wgpu (a GPU through Vulkan / Metal / DX12; Mesa's lavapipe is a
+    /// software one), cuda (a build with `--features cuda`) or auto (CUDA, else a hardware wgpu
+    /// adapter, else the CPU).
+    #[arg(long, default_value = "cpu", value_parser = clap::value_parser!(sparsh_ssl::device::DeviceKind))]
+    device: sparsh_ssl::device::DeviceKind,
+    /// Data-parallel over these devices of the --device kind (indices as `sparsh devices` lists
+    /// them, e.g. 0,1): every batch is split across them and their gradients averaged on the
+    /// first. Default: the kind's first device.
+    #[arg(long, value_name = "I,J,…")]
+    devices: Option<String>,
+}
+
+impl DeviceArgs {
+    fn choose(&self) -> Result<sparsh_ssl::device::Devices> {
+        let indices = match &self.devices {
+            Some(s) => sparsh_ssl::device::parse_indices(s).map_err(anyhow::Error::msg)?,
+            None => Vec::new(),
+        };
+        let devices = sparsh_ssl::device::Devices::choose(self.device, &indices)?;
+        if devices.kind != sparsh_ssl::device::DeviceKind::Cpu || devices.devices.len() > 1 {
+            eprintln!("device: {}", devices.names.join(", "));
+        }
+        Ok(devices)
+    }
+}
+
 #[derive(Debug, Subcommand)]
 enum Command {
     /// Render one frame of a scene to a PNG (and optionally its fields to an EXR).
@@ -237,6 +266,9 @@ enum Command {
         #[arg(long, default_value_t = 0.02)]
         tolerance: f64,
     },
+    /// List the devices `pretrain` and `probe` can compute on (`--device KIND --devices I,J`
+    /// index this list).
+    Devices,
     /// Self-supervised pretraining of a ViT encoder (MAE, DINO, I-JEPA, V-JEPA) from a recipe.
     Pretrain {
         /// Training recipe (TOML), e.g. assets/ssl/mae_tiny_cpu.toml.
@@ -259,6 +291,8 @@ enum Command {
         /// Stop after this many steps in total (the schedule keeps the recipe's length).
         #[arg(long)]
         max_steps: Option<usize>,
+        #[command(flatten)]
+        device: DeviceArgs,
     },
     /// Force probe of an encoder against the recipe's randomly initialised one, over several
     /// probe seeds.
@@ -288,6 +322,8 @@ enum Command {
         /// and rank the pretrained encoder among them: one random draw is a noisy baseline.
         #[arg(long)]
         random_inits: Option<u64>,
+        #[command(flatten)]
+        device: DeviceArgs,
     },
     /// Features of every frame of a generated dataset from a trained encoder, as its recipe
     /// feeds it (the frame stacking, each frame against its sequence's background); written as
@@ -581,6 +617,7 @@ fn run(cli: Cli) -> Result<()> {
         }
         Command::Study { out, quick, table } => study::study(&out, quick, table.as_deref()),
         Command::Limits { tolerance } => study::limits(tolerance),
+        Command::Devices => pretrain::devices(),
         Command::Pretrain {
             config,
             data,
@@ -588,7 +625,16 @@ fn run(cli: Cli) -> Result<()> {
             out,
             resume,
             max_steps,
-        } => pretrain::pretrain(&config, data, probe_data, out, resume, max_steps),
+            device,
+        } => pretrain::pretrain(
+            &config,
+            data,
+            probe_data,
+            out,
+            resume,
+            max_steps,
+            &device.choose()?,
+        ),
         Command::Probe {
             config,
             data,
@@ -597,6 +643,7 @@ fn run(cli: Cli) -> Result<()> {
             label_fraction,
             patches,
             random_inits,
+            device,
         } => pretrain::probe(
             &config,
             &data,
@@ -605,6 +652,7 @@ fn run(cli: Cli) -> Result<()> {
             label_fraction,
             patches,
             random_inits,
+            &device.choose()?,
         ),
         Command::Embed {
             encoder,

@@ -3,6 +3,7 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::Result;
+use sparsh_ssl::device::{DeviceKind, Devices};
 use sparsh_ssl::recipe::Recipe;
 use sparsh_ssl::train::{
     RunOptions, probe_encoders_with_progress, probe_patches_with_progress,
@@ -19,6 +20,7 @@ pub fn pretrain(
     out: PathBuf,
     resume: bool,
     max_steps: Option<usize>,
+    devices: &Devices,
 ) -> Result<()> {
     let recipe = Recipe::load(config)?;
     let bar = Progress::new("pretrain", "step", recipe.optim.steps as u64);
@@ -28,6 +30,7 @@ pub fn pretrain(
         out: out.clone(),
         resume,
         max_steps,
+        devices: devices.clone(),
     };
     let mut probe_msg = String::new();
     let summary = run(&recipe, &opts, &mut |r| {
@@ -89,7 +92,9 @@ pub fn probe(
     label_fraction: Option<f64>,
     patches: bool,
     random_inits: Option<u64>,
+    devices: &Devices,
 ) -> Result<()> {
+    let device = devices.main();
     anyhow::ensure!(
         (1..=100).contains(&seeds),
         "--probe-seeds must be 1 to 100, got {seeds}"
@@ -114,7 +119,7 @@ pub fn probe(
         1 + u64::from(encoder.is_some()) + random_inits.map_or(0, |k| k - 1) + u64::from(patches);
     let progress = Progress::new("probe", "fit", per_seed * seeds.len() as u64);
     let fitted = || progress.inc(1);
-    let rows = probe_encoders_with_progress(&recipe, data, encoder, &seeds, &fitted)?;
+    let rows = probe_encoders_with_progress(&recipe, data, encoder, &seeds, device, &fitted)?;
     // the recipe's own seed is the random encoder of the table; draw the others
     let encoder_seeds: Vec<u64> = (0..random_inits.unwrap_or(0))
         .map(|i| recipe.seed.wrapping_add(i))
@@ -125,6 +130,7 @@ pub fn probe(
             data,
             &encoder_seeds[1..],
             &seeds,
+            device,
             &fitted,
         )?),
         None => None,
@@ -237,6 +243,26 @@ impl Spread {
             max: values.iter().copied().fold(f64::NEG_INFINITY, f64::max),
         }
     }
+}
+
+/// `sparsh devices`: every device of each kind this build and machine have, with the index
+/// `--devices` takes.
+pub fn devices() -> Result<()> {
+    for kind in [DeviceKind::Cpu, DeviceKind::Wgpu, DeviceKind::Cuda] {
+        match sparsh_ssl::device::list(kind) {
+            Ok(list) if list.is_empty() => println!("{kind}: none on this machine"),
+            Ok(list) => {
+                for (i, (_, name)) in list.iter().enumerate() {
+                    println!("{kind} {i}: {name}");
+                }
+            }
+            Err(_) if kind == DeviceKind::Cuda && !cfg!(feature = "cuda") => {
+                println!("cuda: not in this build (rebuild with `--features cuda`)")
+            }
+            Err(e) => println!("{kind}: {e}"),
+        }
+    }
+    Ok(())
 }
 
 #[cfg(test)]

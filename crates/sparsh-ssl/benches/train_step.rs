@@ -69,11 +69,17 @@ fn reference(device: &Device, [width, depth, heads]: [usize; 3], parts: usize) -
     for i in 0..7 {
         let t0 = Instant::now();
         let c0 = cpu_seconds();
-        let (grads, _, _) = micro_batch_gradients(&model, x.clone(), parts, |m, x, rows| {
-            let pred = m.head.forward(m.vit.forward(x, None).patches);
-            let loss = (pred - target.clone().slice(rows)).powi_scalar(2).mean();
-            (loss, None)
-        });
+        let (grads, _, _) = micro_batch_gradients(
+            &model,
+            x.clone(),
+            std::slice::from_ref(device),
+            parts,
+            |m, x, rows| {
+                let pred = m.head.forward(m.vit.forward(x, None).patches);
+                let loss = (pred - target.clone().slice(rows)).powi_scalar(2).mean();
+                (loss, None)
+            },
+        );
         model = optim.step(1e-4, model, grads);
         if i >= 2 {
             times.push(t0.elapsed().as_secs_f64());
@@ -111,7 +117,9 @@ fn objective(name: &str, device: &Device) -> (f64, usize) {
     for i in 0..7 {
         batch.step = i;
         let t0 = Instant::now();
-        model = model.train_step(&recipe, &mut optim, &batch, device).0;
+        model = model
+            .train_step(&recipe, &mut optim, &batch, std::slice::from_ref(device))
+            .0;
         if i >= 2 {
             times.push(t0.elapsed().as_secs_f64());
         }

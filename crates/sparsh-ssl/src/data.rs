@@ -1,5 +1,5 @@
 //! Tactile datasets for pretraining: official preprocessing, the dataset layouts, augmentation
-//! and a prefetching batch loader.
+//! and a prefetching batch loader that streams frames from disk.
 //!
 //! Preprocessing follows the official code (`data/digit/utils.py`):
 //! 1. background subtraction `diff = clip((img − bg)/255 + 0.5, 0, 1)`, stored as 8-bit;
@@ -19,11 +19,17 @@
 //!   background, and each of `imgs` (separate presses of a ball, not a time series) is a sequence
 //!   of one frame seen from rest: frame offsets before it read the no-contact frame, and it has
 //!   no force label.
+//!
+//! Loading reads the labels and each sequence's background, not the frames: a generated
+//! dataset's frames are read and preprocessed from their PNG files, a pickle's from its encoded
+//! bytes (held in memory, as compressed as the file), when a batch needs them, on the rayon
+//! workers. A [`Sampler`] keeps decoded frames up to a memory cap (`[data] cache_mb`), so a
+//! dataset larger than memory trains with bounded memory, and one that fits is decoded once.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
 use std::sync::mpsc::{Receiver, sync_channel};
+use std::sync::{Arc, Mutex};
 
 use image::{RgbImage, imageops};
 use rayon::prelude::*;
@@ -34,11 +40,68 @@ use crate::rng::Rng;
 /// One preprocessed frame: `[3, height, width]` in `[0, 1]`.
 pub type Frame = Arc<Vec<f32>>;
 
+/// Where one frame of a sequence comes from.
+#[derive(Debug, Clone)]
+pub enum FrameSource {
+    /// Preprocessed, in memory.
+    Decoded(Frame),
+    /// An image file, preprocessed against `background` when read.
+    File {
+        /// The image.
+        path: PathBuf,
+        /// The sequence's no-contact image.
+        background: Arc<RgbImage>,
+    },
+    /// Encoded image bytes (JPEG or PNG, one entry of an official pickle), preprocessed against
+    /// `background` when read.
+    Encoded {
+        /// The encoded image.
+        bytes: Arc<Vec<u8>>,
+        /// The sequence's no-contact image.
+        background: Arc<RgbImage>,
+        /// The file the bytes came from and their index in it, for errors.
+        origin: Arc<PathBuf>,
+        /// Index of the frame in `origin`.
+        index: usize,
+    },
+}
+
+impl FrameSource {
+    /// The preprocessed frame at `size` (`[height, width]`): decoded and preprocessed now unless
+    /// it is in memory. Errors name the file.
+    pub fn read(&self, size: [usize; 2]) -> Result<Frame, Error> {
+        match self {
+            FrameSource::Decoded(f) => Ok(f.clone()),
+            FrameSource::File { path, background } => {
+                preprocess(&read_image(path)?, background, size)
+                    .map(Arc::new)
+                    .map_err(|e| Error::file(path, e))
+            }
+            FrameSource::Encoded {
+                bytes,
+                background,
+                origin,
+                index,
+            } => preprocess(&decode(bytes, origin)?, background, size)
+                .map(Arc::new)
+                .map_err(|e| Error::file(origin.as_path(), format!("frame {index}: {e}"))),
+        }
+    }
+
+    /// The frame when it is held preprocessed in memory.
+    pub fn decoded(&self) -> Option<&Frame> {
+        match self {
+            FrameSource::Decoded(f) => Some(f),
+            _ => None,
+        }
+    }
+}
+
 /// One tactile sequence.
 #[derive(Debug, Clone)]
 pub struct Sequence {
-    /// Preprocessed frames in time order.
-    pub frames: Vec<Frame>,
+    /// Frames in time order.
+    pub frames: Vec<FrameSource>,
     /// Total force per frame `[fx, fy, fz]` in N, when labelled.
     pub forces: Option<Vec<[f32; 3]>>,
     /// The no-contact frame (the background preprocessed against itself), read by frame
@@ -47,13 +110,9 @@ pub struct Sequence {
 }
 
 impl Sequence {
-    /// The frame `back` steps before frame `t`: the rest frame before the sequence start, `None`
-    /// when there is no such frame.
-    fn frame_back(&self, t: usize, back: usize) -> Option<&Frame> {
-        match t.checked_sub(back) {
-            Some(i) => self.frames.get(i),
-            None => self.rest_frame.as_ref(),
-        }
+    /// Frames held in memory, in time order.
+    pub fn decoded(frames: Vec<Frame>) -> Vec<FrameSource> {
+        frames.into_iter().map(FrameSource::Decoded).collect()
     }
 }
 
@@ -257,28 +316,30 @@ impl Dataset {
         Ok(Self { sequences, size })
     }
 
-    /// Loads a dataset written by `sparsh generate`.
+    /// Opens a dataset written by `sparsh generate`: reads its labels and backgrounds and checks
+    /// that every frame file exists; frames are read when a batch needs them.
     pub fn load_generated(dir: &Path, size: [usize; 2]) -> Result<Self, Error> {
-        let mut sequences = Vec::new();
-        for seq in generated_sequences(dir)? {
-            let bg = read_image(&seq.background)?;
-            let bg = &bg;
-            let frames = seq
-                .frames
-                .par_iter()
-                .map(|p| {
-                    let img = read_image(p)?;
-                    preprocess(&img, bg, size)
-                        .map(Arc::new)
-                        .map_err(|e| Error::file(p, e))
+        let sequences = generated_sequences(dir)?
+            .into_par_iter()
+            .map(|seq| {
+                let background = Arc::new(read_image(&seq.background)?);
+                if let Some(missing) = seq.frames.iter().find(|p| !p.is_file()) {
+                    return Err(Error::file(missing, "no such frame file"));
+                }
+                Ok(Sequence {
+                    frames: seq
+                        .frames
+                        .into_iter()
+                        .map(|path| FrameSource::File {
+                            path,
+                            background: background.clone(),
+                        })
+                        .collect(),
+                    forces: seq.forces,
+                    rest_frame: None,
                 })
-                .collect::<Result<Vec<_>, _>>()?;
-            sequences.push(Sequence {
-                frames,
-                forces: seq.forces,
-                rest_frame: None,
-            });
-        }
+            })
+            .collect::<Result<Vec<_>, Error>>()?;
         Ok(Self { sequences, size })
     }
 
@@ -300,7 +361,7 @@ impl Dataset {
                 let frame = preprocess(img, bg, size)
                     .map_err(|e| Error::file(path, format!("imgs: frame {k}: {e}")))?;
                 Ok(Sequence {
-                    frames: vec![Arc::new(frame)],
+                    frames: vec![FrameSource::Decoded(Arc::new(frame))],
                     forces: None,
                     rest_frame: Some(rest.clone()),
                 })
@@ -309,13 +370,30 @@ impl Dataset {
         Ok(Self { sequences, size })
     }
 
+    /// Reads and preprocesses every frame now, on the rayon workers: for callers that index
+    /// frames directly (small evaluation sets); training streams through a [`Sampler`].
+    pub fn into_decoded(mut self) -> Result<Self, Error> {
+        let size = self.size;
+        for seq in &mut self.sequences {
+            seq.frames = seq
+                .frames
+                .par_iter()
+                .map(|f| f.read(size).map(FrameSource::Decoded))
+                .collect::<Result<_, _>>()?;
+        }
+        Ok(self)
+    }
+
     /// Number of frames in all sequences.
     pub fn num_frames(&self) -> usize {
         self.sequences.iter().map(|s| s.frames.len()).sum()
     }
 }
 
-/// Loads one official Sparsh pickle (a list of encoded frames) as one sequence.
+/// Opens one official Sparsh pickle (a list of encoded frames) as one sequence: the encoded
+/// frames stay in memory and are decoded when a batch needs them. The background (a `bg*` image
+/// beside it, else the first frame) and the first frame are decoded now, so a file that is not
+/// images fails here.
 pub fn load_pickle(path: &Path, size: [usize; 2]) -> Result<Sequence, Error> {
     let frames = sparsh_data::sparsh_pkl::read_frames_pickle(path).map_err(|e| match e {
         sparsh_data::DataError::Format { message, .. } => Error::file(path, message),
@@ -325,20 +403,22 @@ pub fn load_pickle(path: &Path, size: [usize; 2]) -> Result<Sequence, Error> {
     if frames.is_empty() {
         return Err(Error::file(path, "the pickle holds no frames"));
     }
-    let bg = match background_beside(path) {
+    let background = Arc::new(match background_beside(path) {
         Some(p) => read_image(&p)?,
         None => decode(&frames[0], path)?,
-    };
-    let frames = frames
-        .par_iter()
+    });
+    let origin = Arc::new(path.to_path_buf());
+    let frames: Vec<FrameSource> = frames
+        .into_iter()
         .enumerate()
-        .map(|(i, bytes)| {
-            let img = decode(bytes, path)?;
-            preprocess(&img, &bg, size)
-                .map(Arc::new)
-                .map_err(|e| Error::file(path, format!("frame {i}: {e}")))
+        .map(|(index, bytes)| FrameSource::Encoded {
+            bytes: Arc::new(bytes),
+            background: background.clone(),
+            origin: origin.clone(),
+            index,
         })
-        .collect::<Result<Vec<_>, _>>()?;
+        .collect();
+    frames[0].read(size)?;
     Ok(Sequence {
         frames,
         forces: None,
@@ -522,19 +602,49 @@ pub struct HostBatch {
     pub forces: Option<Vec<[f32; 3]>>,
 }
 
+/// Decoded frames kept by a [`Sampler`], up to a byte cap: frames are kept as they are first
+/// read until the cap is reached, then read from their source each time (under uniform random
+/// sampling no eviction policy keeps more of the reads in memory, and this one never moves a
+/// frame). What is cached changes the time, not the values.
+#[derive(Debug)]
+struct FrameCache {
+    cap_bytes: usize,
+    held: Mutex<(usize, std::collections::HashMap<(usize, usize), Frame>)>,
+}
+
+impl FrameCache {
+    fn new(cap_bytes: usize) -> Self {
+        Self {
+            cap_bytes,
+            held: Mutex::new((0, Default::default())),
+        }
+    }
+
+    fn lock(
+        &self,
+    ) -> std::sync::MutexGuard<'_, (usize, std::collections::HashMap<(usize, usize), Frame>)> {
+        // a panic while holding the lock leaves the map consistent (only inserts happen)
+        self.held.lock().unwrap_or_else(|e| e.into_inner())
+    }
+}
+
 /// Samples `(sequence, frame)` of a dataset under a stacking, and batch assembly.
 #[derive(Debug, Clone)]
 pub struct Sampler {
     data: Arc<Dataset>,
     stacking: Stacking,
+    cache: Arc<FrameCache>,
     /// The valid `(sequence, frame)` pairs: every offset inside the sequence, or reaching back
     /// to its rest frame.
     pub samples: Vec<(usize, usize)>,
 }
 
+/// The default cap of a [`Sampler`]'s decoded frames (`[data] cache_mb`).
+pub const DEFAULT_CACHE_MB: usize = 4096;
+
 impl Sampler {
     /// All samples of `data` whose offsets stay within their sequence; every frame of a
-    /// sequence with a rest frame.
+    /// sequence with a rest frame. Keeps up to [`DEFAULT_CACHE_MB`] of decoded frames.
     pub fn new(data: Arc<Dataset>, stacking: Stacking) -> Result<Self, Error> {
         let reach = stacking.offsets().iter().copied().max().unwrap_or(0);
         let samples: Vec<(usize, usize)> = data
@@ -554,8 +664,21 @@ impl Sampler {
         Ok(Self {
             data,
             stacking,
+            cache: Arc::new(FrameCache::new(DEFAULT_CACHE_MB << 20)),
             samples,
         })
+    }
+
+    /// The same sampler keeping at most `mb` MiB of decoded frames (frames held in memory by the
+    /// dataset itself are not counted).
+    pub fn with_cache_mb(mut self, mb: usize) -> Self {
+        self.cache = Arc::new(FrameCache::new(mb.saturating_mul(1 << 20)));
+        self
+    }
+
+    /// Bytes of decoded frames the sampler holds now.
+    pub fn cached_bytes(&self) -> usize {
+        self.cache.lock().0
     }
 
     /// The dataset.
@@ -563,9 +686,43 @@ impl Sampler {
         &self.data
     }
 
+    /// The preprocessed frame `back` steps before frame `t` of sequence `s`: the rest frame
+    /// before the sequence start.
+    fn frame_back(&self, s: usize, t: usize, back: usize) -> Result<Frame, Error> {
+        let seq = &self.data.sequences[s];
+        let Some(i) = t.checked_sub(back) else {
+            return Ok(seq
+                .rest_frame
+                .clone()
+                .expect("Sampler::new admits only samples whose offsets resolve"));
+        };
+        let source = &seq.frames[i];
+        if let Some(f) = source.decoded() {
+            return Ok(f.clone());
+        }
+        if let Some(f) = self.cache.lock().1.get(&(s, i)) {
+            return Ok(f.clone());
+        }
+        let frame = source.read(self.data.size)?;
+        let bytes = frame.len() * size_of::<f32>();
+        let mut held = self.cache.lock();
+        if held.0 + bytes <= self.cache.cap_bytes && !held.1.contains_key(&(s, i)) {
+            held.0 += bytes;
+            held.1.insert((s, i), frame.clone());
+        }
+        Ok(frame)
+    }
+
     /// Assembles the samples `picks` (indices into [`Self::samples`]) with per-sample warps
-    /// drawn from `(seed, step)`.
-    pub fn batch(&self, picks: &[usize], aug: &AugmentConfig, seed: u64, step: usize) -> HostBatch {
+    /// drawn from `(seed, step)`, reading frames on the rayon workers. Errors name a frame file
+    /// that cannot be read.
+    pub fn batch(
+        &self,
+        picks: &[usize],
+        aug: &AugmentConfig,
+        seed: u64,
+        step: usize,
+    ) -> Result<HostBatch, Error> {
         let [h, w] = self.data.size;
         let [frames, chans] = self.stacking.shape();
         let per = frames * chans * h * w;
@@ -573,18 +730,16 @@ impl Sampler {
         values
             .par_chunks_mut(per)
             .zip(picks.par_iter().enumerate())
-            .for_each(|(out, (i, &pick))| {
+            .try_for_each(|(out, (i, &pick))| {
                 let (s, t) = self.samples[pick];
                 let warp =
                     Warp::sample(&mut Rng::for_step(seed, step as u64, 1000 + i as u64), aug);
-                let seq = &self.data.sequences[s];
                 for (k, &off) in self.stacking.offsets().iter().enumerate() {
-                    let frame = seq
-                        .frame_back(t, off)
-                        .expect("Sampler::new admits only samples whose offsets resolve");
-                    warp.apply(frame, h, w, &mut out[k * 3 * h * w..(k + 1) * 3 * h * w]);
+                    let frame = self.frame_back(s, t, off)?;
+                    warp.apply(&frame, h, w, &mut out[k * 3 * h * w..(k + 1) * 3 * h * w]);
                 }
-            });
+                Ok::<(), Error>(())
+            })?;
         let forces = picks
             .iter()
             .map(|&p| {
@@ -592,12 +747,12 @@ impl Sampler {
                 self.data.sequences[s].forces.as_ref().map(|f| f[t])
             })
             .collect();
-        HostBatch {
+        Ok(HostBatch {
             step,
             values,
             shape: [picks.len(), frames, chans, h, w],
             forces,
-        }
+        })
     }
 
     /// The sample indices of training step `step`: consecutive slices of a per-epoch permutation
@@ -617,7 +772,8 @@ impl Sampler {
     }
 
     /// Starts a thread that assembles the batches of steps `start..end` ahead of the trainer
-    /// (up to `prefetch` waiting); augmentation runs on the rayon pool.
+    /// (up to `prefetch` waiting); reading and augmentation run on the rayon pool. The thread
+    /// stops after the first error, which it passes on.
     pub fn prefetch(
         &self,
         aug: AugmentConfig,
@@ -626,13 +782,15 @@ impl Sampler {
         start: usize,
         end: usize,
         prefetch: usize,
-    ) -> Receiver<HostBatch> {
+    ) -> Receiver<Result<HostBatch, Error>> {
         let (tx, rx) = sync_channel(prefetch.max(1));
         let me = self.clone();
         std::thread::spawn(move || {
             for step in start..end {
                 let picks = me.picks(seed, step, batch);
-                if tx.send(me.batch(&picks, &aug, seed, step)).is_err() {
+                let batch = me.batch(&picks, &aug, seed, step);
+                let failed = batch.is_err();
+                if tx.send(batch).is_err() || failed {
                     break;
                 }
             }
@@ -689,9 +847,11 @@ mod tests {
             size,
             sequences: (0..seqs)
                 .map(|s| Sequence {
-                    frames: (0..len)
-                        .map(|t| Arc::new(vec![(s * 100 + t) as f32; 3 * 48]))
-                        .collect(),
+                    frames: Sequence::decoded(
+                        (0..len)
+                            .map(|t| Arc::new(vec![(s * 100 + t) as f32; 3 * 48]))
+                            .collect(),
+                    ),
                     forces: Some((0..len).map(|t| [t as f32, 0.0, 1.0]).collect()),
                     rest_frame: None,
                 })
@@ -703,7 +863,9 @@ mod tests {
     fn pairs_stay_in_sequence_and_epochs_cover_all_samples() {
         let sampler = Sampler::new(toy(3, 8), Stacking::Channels(vec![0, 5])).unwrap();
         assert_eq!(sampler.samples.len(), 3 * 3);
-        let b = sampler.batch(&[0, 4], &AugmentConfig::none(), 1, 0);
+        let b = sampler
+            .batch(&[0, 4], &AugmentConfig::none(), 1, 0)
+            .unwrap();
         assert_eq!(b.shape, [2, 1, 6, 8, 6]);
         // sample 0 = (seq 0, t 5): channels 0..3 from frame 5, 3..6 from frame 0
         assert_eq!(b.values[0], 5.0);
@@ -728,7 +890,9 @@ mod tests {
             sampler.samples,
             vec![(0, 0), (0, 1), (0, 2), (1, 4), (1, 5), (1, 6)]
         );
-        let b = sampler.batch(&[2, 3], &AugmentConfig::none(), 0, 0);
+        let b = sampler
+            .batch(&[2, 3], &AugmentConfig::none(), 0, 0)
+            .unwrap();
         let clip = 3 * 3 * 48;
         let first = |k: usize, f: usize| b.values[k * clip + f * 3 * 48];
         // (seq 0, t 2): frames 2 and 0, then the rest frame
@@ -764,14 +928,18 @@ mod tests {
         let data = Arc::new(Dataset {
             size: [8, 6],
             sequences: vec![Sequence {
-                frames: (0..6).map(|_| Arc::new(v.clone())).collect(),
+                frames: Sequence::decoded((0..6).map(|_| Arc::new(v.clone())).collect()),
                 forces: None,
                 rest_frame: None,
             }],
         });
         let s = Sampler::new(data, Stacking::Frames(vec![0, 2, 4])).unwrap();
-        let a = s.batch(&[0, 1, 0], &AugmentConfig::default(), 5, 3);
-        let b = s.batch(&[0, 1, 0], &AugmentConfig::default(), 5, 3);
+        let a = s
+            .batch(&[0, 1, 0], &AugmentConfig::default(), 5, 3)
+            .unwrap();
+        let b = s
+            .batch(&[0, 1, 0], &AugmentConfig::default(), 5, 3)
+            .unwrap();
         assert_eq!(a.values, b.values);
         assert_eq!(a.shape, [3, 3, 3, 8, 6]);
     }

@@ -10,8 +10,10 @@
 //! - [`weights`]: safetensors with the official checkpoints' key names.
 //! - [`embed`]: a trained encoder as a frozen feature extractor of tactile frames.
 //! - [`recipe`], [`train`], [`probe`]: training recipes, the training loop, the online force probe.
+//! - [`device`]: the CPU, wgpu or CUDA devices a run computes on (data-parallel over several).
 
 pub mod data;
+pub mod device;
 pub mod dino;
 pub mod ema;
 pub mod embed;

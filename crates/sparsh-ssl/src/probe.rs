@@ -11,6 +11,7 @@ use burn::tensor::activation::gelu;
 use burn::tensor::module::attention;
 use burn::tensor::ops::AttentionModuleOptions;
 
+use crate::Error;
 use crate::data::{AugmentConfig, HostBatch, Sampler};
 use crate::rng::Rng;
 use crate::vit::{LN_EPS, Vit};
@@ -46,8 +47,13 @@ impl ProbeSet {
     /// Up to `max` evenly spaced labelled samples; every fifth sequence is held out (every fifth
     /// sample when there are fewer than five labelled sequences), and of the others an evenly
     /// spaced `label_fraction` is kept for fitting (the label budget). `None` when the data
-    /// carry no force labels or too few samples.
-    pub fn new(sampler: &Sampler, max: usize, chunk: usize, label_fraction: f64) -> Option<Self> {
+    /// carry no force labels or too few samples; an error when a frame cannot be read.
+    pub fn new(
+        sampler: &Sampler,
+        max: usize,
+        chunk: usize,
+        label_fraction: f64,
+    ) -> Result<Option<Self>, Error> {
         let labelled: Vec<usize> = (0..sampler.samples.len())
             .filter(|&i| {
                 sampler.data().sequences[sampler.samples[i].0]
@@ -56,7 +62,7 @@ impl ProbeSet {
             })
             .collect();
         if labelled.len() < 10 || max < 10 {
-            return None;
+            return Ok(None);
         }
         let stride = labelled.len().div_ceil(max);
         let picks: Vec<usize> = labelled.into_iter().step_by(stride).collect();
@@ -89,22 +95,22 @@ impl ProbeSet {
             })
             .unzip();
         if test.iter().all(|&t| t) || !test.iter().any(|&t| t) {
-            return None;
+            return Ok(None);
         }
         let batches: Vec<HostBatch> = picks
             .chunks(chunk.max(1))
             .map(|c| sampler.batch(c, &AugmentConfig::none(), 0, 0))
-            .collect();
+            .collect::<Result<_, _>>()?;
         let forces = batches
             .iter()
             .flat_map(|b| b.forces.clone().expect("labelled samples"))
             .map(|f| f.map(f64::from))
             .collect();
-        Some(Self {
+        Ok(Some(Self {
             batches,
             test,
             forces,
-        })
+        }))
     }
 
     /// Samples the probes are fitted on and samples they are scored on.
@@ -125,6 +131,7 @@ impl ProbeSet {
             &self.test,
             attentive_epochs,
             seed,
+            &Device::flex(),
         )
     }
 
@@ -142,10 +149,10 @@ impl ProbeSet {
 
     /// Fits and scores the probes on `encoder` (frozen; no gradients reach it): the ridge
     /// read-out always, the attentive probe trained for `attentive_epochs` epochs (seeded by
-    /// `seed`) when that is above 0.
+    /// `seed`) when that is above 0. Both run on the encoder's device.
     pub fn score(&self, encoder: &Vit, attentive_epochs: usize, seed: u64) -> ProbeScore {
         let enc = encoder.clone().valid();
-        let device = Device::flex();
+        let device = enc.devices().first().cloned().unwrap_or_else(Device::flex);
         let (mut tokens, mut dims) = (Vec::new(), [0, 0, 0]);
         for b in &self.batches {
             let x = Tensor::<1>::from_floats(b.values.as_slice(), &device).reshape(b.shape);
@@ -177,6 +184,7 @@ impl ProbeSet {
                 &self.test,
                 attentive_epochs,
                 seed,
+                &device,
             )
         } else {
             linear.rmse_mn
@@ -322,7 +330,9 @@ impl AttentiveProbe {
 /// Tokens are standardized per (token, feature) and forces per axis with the training rows'
 /// statistics; AdamW (weight decay 0.01) with the learning rate falling from 1e-3 to 0 on a
 /// half cosine over the run (so the probe ends at a settled minimum rather than a noisy
-/// iterate), batches of 32, MSE, `epochs` passes in an order drawn from `seed`.
+/// iterate), batches of 32, MSE, `epochs` passes in an order drawn from `seed`, on `device`
+/// (the probe drawn on the CPU under `seed` and moved there).
+#[allow(clippy::too_many_arguments)]
 pub fn attentive_score(
     tokens: &[f32],
     dims: [usize; 3],
@@ -330,6 +340,7 @@ pub fn attentive_score(
     test: &[bool],
     epochs: usize,
     seed: u64,
+    device: &Device,
 ) -> f64 {
     let [_, t, d] = dims;
     let row = t * d;
@@ -350,10 +361,14 @@ pub fn attentive_score(
     };
     let (ymean, ystd) = column_stats(&train, 3, 1e-9, |i, k| y[i][k]);
     let heads = if d % 64 == 0 { d / 64 } else { 1 };
-    let device = Device::flex().autodiff();
-    let mut probe = crate::train::seeded_module(&device, seed, || {
-        AttentiveProbeConfig::new(d, heads).init(&device)
+    let cpu = Device::flex().autodiff();
+    let mut probe = crate::train::seeded_module(&cpu, seed, || {
+        AttentiveProbeConfig::new(d, heads).init(&cpu)
     });
+    let device = device.clone().autodiff();
+    if device != cpu {
+        probe = probe.fork(&device);
+    }
     let mut optim = AdamWConfig::new().with_weight_decay(0.01).init();
     let total_steps = (epochs * train.len().div_ceil(32)).max(1);
     let mut step = 0;
@@ -386,11 +401,8 @@ pub fn attentive_score(
     let probe = probe.valid();
     let mut se = 0.0;
     for rows in tests.chunks(64) {
-        let x = Tensor::<1>::from_floats(standard(rows).as_slice(), &Device::flex()).reshape([
-            rows.len(),
-            t,
-            d,
-        ]);
+        let x = Tensor::<1>::from_floats(standard(rows).as_slice(), &device.clone().inner())
+            .reshape([rows.len(), t, d]);
         let pred = probe
             .forward(x)
             .into_data()
@@ -641,14 +653,17 @@ mod tests {
         let test: Vec<bool> = (0..n).map(|i| i % 5 == 4).collect();
         let (tokens, y) = localized_tokens(&mut rng, n, t, d);
         let baseline = ridge_score(&vec![vec![0.0; 1]; n], &y, &test).baseline_mn;
-        let rmse = attentive_score(&tokens, [n, t, d], &y, &test, 40, 1);
+        let rmse = attentive_score(&tokens, [n, t, d], &y, &test, 40, 1, &Device::flex());
         assert!(rmse < 0.35 * baseline, "{rmse} vs mean {baseline}");
         // the same labels over tokens drawn independently of them
         let (noise, _) = localized_tokens(&mut rng, n, t, d);
-        let rmse = attentive_score(&noise, [n, t, d], &y, &test, 40, 1);
+        let rmse = attentive_score(&noise, [n, t, d], &y, &test, 40, 1, &Device::flex());
         assert!(rmse > 0.9 * baseline, "{rmse} vs mean {baseline}");
         // seeded: the same score again
-        assert_eq!(rmse, attentive_score(&noise, [n, t, d], &y, &test, 40, 1));
+        assert_eq!(
+            rmse,
+            attentive_score(&noise, [n, t, d], &y, &test, 40, 1, &Device::flex())
+        );
     }
 
     #[test]

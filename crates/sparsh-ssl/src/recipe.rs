@@ -289,6 +289,9 @@ pub struct DataSection {
     pub augment: AugmentConfig,
     /// Batches assembled ahead of the trainer.
     pub prefetch: usize,
+    /// MiB of decoded frames kept in memory; frames beyond it are read from disk (or from their
+    /// pickle's encoded bytes) each time a batch needs them.
+    pub cache_mb: usize,
 }
 
 impl Default for DataSection {
@@ -297,6 +300,7 @@ impl Default for DataSection {
             frame_offsets: Vec::new(),
             augment: AugmentConfig::default(),
             prefetch: 3,
+            cache_mb: crate::data::DEFAULT_CACHE_MB,
         }
     }
 }

@@ -22,6 +22,7 @@ use rayon::prelude::*;
 
 use crate::Error;
 use crate::data::{Dataset, HostBatch, Sampler};
+use crate::device::Devices;
 use crate::dino::Dino;
 use crate::ema::momentum_at;
 use crate::jepa::Jepa;
@@ -105,8 +106,19 @@ pub struct StepReport {
 }
 
 impl Trainee {
-    /// A freshly initialized model for `recipe`.
+    /// A freshly initialized model for `recipe` on `device` (an autodiff device), drawn on the
+    /// CPU under the recipe's seed and then moved, so every device starts from the same weights.
     pub fn init(recipe: &Recipe, device: &Device) -> Result<Self, Error> {
+        let cpu = Device::flex().autodiff();
+        let model = Self::init_on(recipe, &cpu)?;
+        Ok(if *device == cpu {
+            model
+        } else {
+            model.fork(device)
+        })
+    }
+
+    fn init_on(recipe: &Recipe, device: &Device) -> Result<Self, Error> {
         let (mae, dino, jepa) = match recipe.objective {
             ObjectiveKind::Mae => (Some(recipe.mae_config()?), None, None),
             ObjectiveKind::Dino => (None, Some(recipe.dino_config()?), None),
@@ -195,18 +207,19 @@ impl Trainee {
         }
     }
 
-    /// Gradients of step `step`'s loss on `x`, taken over `optim.micro_batches` micro-batches
-    /// ([`micro_batch_gradients`]): the gradients, the loss value and, for DINO, the teacher
-    /// mean for the centre update.
+    /// Gradients of step `step`'s loss on `x`, taken over `optim.micro_batches` micro-batches on
+    /// each of `devices` ([`micro_batch_gradients`]): the gradients, the loss value and, for
+    /// DINO, the teacher mean for the centre update, all on the first device.
     pub fn gradients(
         &self,
         recipe: &Recipe,
         x: Tensor<5>,
         step: usize,
+        devices: &[Device],
     ) -> (GradientsParams, f64, Option<Tensor<2>>) {
         let b = x.dims()[0];
         let draw = self.draw(recipe, b, step);
-        micro_batch_gradients(self, x, recipe.optim.micro_batches, |m, x, r| {
+        micro_batch_gradients(self, x, devices, recipe.optim.micro_batches, |m, x, r| {
             m.draw_loss(x, &draw, r)
         })
     }
@@ -239,17 +252,19 @@ impl Trainee {
         }
     }
 
-    /// One full training step on a host batch: loss, backward (per micro-batch), AdamW, EMA.
-    /// Returns the loss (mean over the micro-batches).
+    /// One full training step on a host batch: loss, backward (per micro-batch and device),
+    /// AdamW, EMA. `devices` are autodiff devices, the model lives on the first; with several the
+    /// step is data-parallel ([`micro_batch_gradients`]). Returns the loss (mean over the
+    /// micro-batches).
     pub fn train_step(
         self,
         recipe: &Recipe,
         optim: &mut burn::optim::ModuleOptimizer,
         batch: &HostBatch,
-        device: &Device,
+        devices: &[Device],
     ) -> (Self, f64) {
-        let x = Tensor::<1>::from_floats(batch.values.as_slice(), device).reshape(batch.shape);
-        let (grads, value, aux) = self.gradients(recipe, x, batch.step);
+        let x = Tensor::<1>::from_floats(batch.values.as_slice(), &devices[0]).reshape(batch.shape);
+        let (grads, value, aux) = self.gradients(recipe, x, batch.step, devices);
         let next = optim.step(recipe.optim.lr_at(batch.step), self, grads);
         (next.after_step(recipe, batch.step, aux), value)
     }
@@ -315,18 +330,24 @@ impl ModuleVisitor for AverageGradients<'_> {
     }
 }
 
-/// Gradients of `loss` averaged over `parts` equal micro-batches of `x` (rows split in order),
-/// with the mean loss value and the mean of the auxiliary output (DINO's teacher mean).
+/// Gradients of `loss` averaged over `parts` equal micro-batches of `x` on each of `devices`
+/// (rows split in order: device 0 takes the first `parts` micro-batches, device 1 the next…),
+/// with the mean loss value and the mean of the auxiliary output (DINO's teacher mean), all on
+/// the device of `x` — the first device, where the model lives.
 ///
 /// Each micro-batch runs forward and backward on its own copy of the parameters
-/// ([`Module::fork`]: fresh autodiff leaves, so the graphs stay independent) in parallel on the
-/// rayon pool; burn's CPU backend runs element-wise ops on the calling thread, so this is what
-/// puts the second core to work outside the matrix products. For a loss that is a mean over
-/// samples with equal counts per sample (MAE, I-JEPA, V-JEPA) the average is the whole-batch
-/// gradient. `parts = 1` is the plain whole-batch step.
+/// ([`Module::fork`] onto its device: fresh autodiff leaves, so the graphs stay independent) in
+/// parallel on the rayon pool; burn's CPU backend runs element-wise ops on the calling thread, so
+/// this is what puts the second core to work outside the matrix products. With several devices
+/// this is data-parallel training: the fork broadcasts the parameters, and every part's
+/// gradients are moved to the first device ([`GradientsParams::to_device`]) and averaged there in
+/// part order (the all-reduce), so the step does not depend on which device finished first. For a
+/// loss that is a mean over samples with equal counts per sample (MAE, I-JEPA, V-JEPA) the average
+/// is the whole-batch gradient. One device and `parts = 1` is the plain whole-batch step.
 pub fn micro_batch_gradients<M, F>(
     model: &M,
     x: Tensor<5>,
+    devices: &[Device],
     parts: usize,
     loss: F,
 ) -> (GradientsParams, f64, Option<Tensor<2>>)
@@ -335,25 +356,35 @@ where
     F: Fn(&M, Tensor<5>, Range<usize>) -> (Tensor<1>, Option<Tensor<2>>) + Sync,
 {
     let b = x.dims()[0];
-    if parts <= 1 {
+    let parts_per_device = parts.max(1);
+    let parts = parts_per_device * devices.len().max(1);
+    if parts == 1 {
         let (l, aux) = loss(model, x, 0..b);
         let value = l.clone().into_scalar::<f32>() as f64;
         return (GradientsParams::from_grads(l.backward(), model), value, aux);
     }
     assert!(
         b.is_multiple_of(parts),
-        "micro-batches must split the batch evenly"
+        "micro-batches × devices must split the batch evenly"
     );
-    let device = x.device();
+    let main = x.device();
     let size = b / parts;
     let results: Vec<(GradientsParams, f64, Option<Tensor<2>>)> = (0..parts)
         .into_par_iter()
         .map(|i| {
+            let device = devices.get(i / parts_per_device).unwrap_or(&main);
             let rows = i * size..(i + 1) * size;
-            let part = model.clone().fork(&device);
-            let (l, aux) = loss(&part, x.clone().slice(rows.clone()), rows);
+            let part = model.clone().fork(device);
+            let xs = x.clone().slice(rows.clone()).to_device(device);
+            let (l, aux) = loss(&part, xs, rows);
             let value = l.clone().into_scalar::<f32>() as f64;
-            (GradientsParams::from_grads(l.backward(), &part), value, aux)
+            let grads = GradientsParams::from_grads(l.backward(), &part);
+            let grads = if *device == main {
+                grads
+            } else {
+                grads.to_device(&main, &part)
+            };
+            (grads, value, aux.map(|a| a.to_device(&main)))
         })
         .collect();
     let mut grads = Vec::with_capacity(parts);
@@ -381,14 +412,15 @@ where
 /// The force-probe set of `recipe` drawn from the labelled datasets `data`; an error naming the
 /// first dataset when they carry too few force labels.
 fn probe_set(recipe: &Recipe, data: &[PathBuf]) -> Result<ProbeSet, Error> {
-    let sampler = Sampler::new(Arc::new(load_data(recipe, data)?), recipe.stacking())?;
+    let sampler = Sampler::new(Arc::new(load_data(recipe, data)?), recipe.stacking())?
+        .with_cache_mb(recipe.data.cache_mb);
     let first = data.first().map_or(Path::new("."), PathBuf::as_path);
     ProbeSet::new(
         &sampler,
         recipe.log.probe_max_samples,
         recipe.optim.batch_size,
         recipe.log.probe_label_fraction,
-    )
+    )?
     .ok_or_else(|| {
         Error::file(
             first,
@@ -400,15 +432,16 @@ fn probe_set(recipe: &Recipe, data: &[PathBuf]) -> Result<ProbeSet, Error> {
 
 /// Scores the force probes of `recipe` on `data` for the recipe's randomly initialised encoder
 /// and, when given, the encoder weights in `encoder` (safetensors, official key names), once per
-/// probe seed in `seeds`: `(random init, loaded)` per seed. Errors when the data carry no force
-/// labels.
+/// probe seed in `seeds`: `(random init, loaded)` per seed, computed on `device`. Errors when the
+/// data carry no force labels.
 pub fn probe_encoders(
     recipe: &Recipe,
     data: &[PathBuf],
     encoder: Option<&Path>,
     seeds: &[u64],
+    device: &Device,
 ) -> Result<Vec<(ProbeScore, Option<ProbeScore>)>, Error> {
-    probe_encoders_with_progress(recipe, data, encoder, seeds, &|| {})
+    probe_encoders_with_progress(recipe, data, encoder, seeds, device, &|| {})
 }
 
 /// [`probe_encoders`], calling `fitted` after each probe fit (one per seed and encoder).
@@ -417,12 +450,13 @@ pub fn probe_encoders_with_progress(
     data: &[PathBuf],
     encoder: Option<&Path>,
     seeds: &[u64],
+    device: &Device,
     fitted: &dyn Fn(),
 ) -> Result<Vec<(ProbeScore, Option<ProbeScore>)>, Error> {
     recipe.validate()?;
     let set = probe_set(recipe, data)?;
     // initialised as a run initialises it, on the autodiff device
-    let device = Device::flex().autodiff();
+    let device = device.clone().autodiff();
     let random = Trainee::init(recipe, &device)?.encoder().clone();
     let loaded = match encoder {
         Some(path) => Some(crate::weights::load_encoder(random.clone(), path, None)?),
@@ -449,14 +483,15 @@ pub fn probe_encoders_with_progress(
 /// of the recipe with that seed draws its own, once per probe seed in `probe_seeds`: one row per
 /// seed in `encoder_seeds`. Their spread is the yardstick for a pretrained encoder: two draws of
 /// the same architecture can read force tens of mN apart, so one random encoder is a noisy
-/// baseline. Errors when the data carry no force labels.
+/// baseline. Computed on `device`. Errors when the data carry no force labels.
 pub fn probe_random_encoders(
     recipe: &Recipe,
     data: &[PathBuf],
     encoder_seeds: &[u64],
     probe_seeds: &[u64],
+    device: &Device,
 ) -> Result<Vec<Vec<ProbeScore>>, Error> {
-    probe_random_encoders_with_progress(recipe, data, encoder_seeds, probe_seeds, &|| {})
+    probe_random_encoders_with_progress(recipe, data, encoder_seeds, probe_seeds, device, &|| {})
 }
 
 /// [`probe_random_encoders`], calling `fitted` after each probe fit.
@@ -465,11 +500,12 @@ pub fn probe_random_encoders_with_progress(
     data: &[PathBuf],
     encoder_seeds: &[u64],
     probe_seeds: &[u64],
+    device: &Device,
     fitted: &dyn Fn(),
 ) -> Result<Vec<Vec<ProbeScore>>, Error> {
     recipe.validate()?;
     let set = probe_set(recipe, data)?;
-    let device = Device::flex().autodiff();
+    let device = device.clone().autodiff();
     encoder_seeds
         .iter()
         .map(|&seed| {
@@ -541,6 +577,8 @@ pub struct RunOptions {
     pub resume: bool,
     /// Stop after this many steps in total (the schedule still spans `optim.steps`).
     pub max_steps: Option<usize>,
+    /// Where the run computes; several devices split every batch (data-parallel).
+    pub devices: Devices,
 }
 
 #[derive(serde::Serialize, serde::Deserialize)]
@@ -643,7 +681,22 @@ pub fn run(
     on_step: &mut dyn FnMut(&StepReport),
 ) -> Result<RunSummary, Error> {
     recipe.validate()?;
-    let device = Device::flex().autodiff();
+    let parts = recipe.optim.micro_batches * opts.devices.devices.len();
+    if !recipe.optim.batch_size.is_multiple_of(parts) {
+        return Err(Error::Config(format!(
+            "optim.batch_size {} does not split into {} micro-batches on each of {} devices",
+            recipe.optim.batch_size,
+            recipe.optim.micro_batches,
+            opts.devices.devices.len()
+        )));
+    }
+    let devices: Vec<Device> = opts
+        .devices
+        .devices
+        .iter()
+        .map(|d| d.clone().autodiff())
+        .collect();
+    let device = devices[0].clone();
     let ckpt = opts.out.join("checkpoint");
     if !opts.resume && ckpt.exists() {
         return Err(Error::file(
@@ -667,7 +720,7 @@ pub fn run(
     }
     std::fs::create_dir_all(&opts.out).map_err(|e| Error::file(&opts.out, e))?;
     let data = Arc::new(load_data(recipe, &opts.data)?);
-    let sampler = Sampler::new(data, recipe.stacking())?;
+    let sampler = Sampler::new(data, recipe.stacking())?.with_cache_mb(recipe.data.cache_mb);
     let probe_set = if recipe.log.probe_every == 0 {
         None
     } else if opts.probe_data.is_empty() {
@@ -676,7 +729,7 @@ pub fn run(
             recipe.log.probe_max_samples,
             recipe.optim.batch_size,
             recipe.log.probe_label_fraction,
-        )
+        )?
     } else {
         Some(probe_set(recipe, &opts.probe_data)?)
     };
@@ -751,9 +804,9 @@ pub fn run(
         let tw = Instant::now();
         let batch = rx
             .recv()
-            .map_err(|_| Error::Data("the batch loader stopped".into()))?;
+            .map_err(|_| Error::Data("the batch loader stopped".into()))??;
         let wait_s = tw.elapsed().as_secs_f64();
-        let (next, loss) = model.train_step(recipe, &mut optim, &batch, &device);
+        let (next, loss) = model.train_step(recipe, &mut optim, &batch, &devices);
         model = next;
         if !loss.is_finite() {
             return Err(Error::Data(format!("loss is {loss} at step {step}")));

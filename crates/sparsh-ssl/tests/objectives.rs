@@ -51,7 +51,8 @@ fn one_step_lowers_loss(recipe: Recipe) {
     let batch = fixed_batch(&recipe);
     let x = || Tensor::<1>::from_floats(batch.values.as_slice(), &device).reshape(batch.shape);
     let before = model.loss(&recipe, x(), 0).0.into_scalar::<f32>();
-    let (model, reported) = model.train_step(&recipe, &mut optim, &batch, &device);
+    let (model, reported) =
+        model.train_step(&recipe, &mut optim, &batch, std::slice::from_ref(&device));
     let after = model.loss(&recipe, x(), 0).0.into_scalar::<f32>();
     assert!(
         (reported as f32 - before).abs() <= 1e-4 * before.abs().max(1.0),
@@ -182,7 +183,8 @@ fn training_gives_the_same_bits_on_one_and_two_threads() {
             let mut losses = Vec::new();
             for step in 0..3 {
                 batch.step = step;
-                let (next, loss) = model.train_step(&recipe, &mut optim, &batch, &device);
+                let (next, loss) =
+                    model.train_step(&recipe, &mut optim, &batch, std::slice::from_ref(&device));
                 model = next;
                 losses.push(loss.to_bits());
             }
@@ -205,12 +207,13 @@ fn micro_batches_match_whole_batch(mut recipe: Recipe) {
     let batch = fixed_batch(&recipe);
     let x = || Tensor::<1>::from_floats(batch.values.as_slice(), &device).reshape(batch.shape);
     recipe.optim.micro_batches = 1;
-    let (whole, whole_loss, _) = model.gradients(&recipe, x(), 0);
+    let (whole, whole_loss, _) = model.gradients(&recipe, x(), 0, std::slice::from_ref(&device));
     let whole = flat_gradients(&model, &whole);
     assert!(whole.iter().any(Option::is_some));
     for parts in [2, 4] {
         recipe.optim.micro_batches = parts;
-        let (split, split_loss, _) = model.gradients(&recipe, x(), 0);
+        let (split, split_loss, _) =
+            model.gradients(&recipe, x(), 0, std::slice::from_ref(&device));
         let split = flat_gradients(&model, &split);
         assert_eq!(split.len(), whole.len(), "{parts} parts: parameter count");
         assert!(
@@ -335,9 +338,10 @@ fn ema_teacher_follows_the_student_by_the_scheduled_momentum() {
         let mut optim = optimizer(recipe);
         let mut batch = fixed_batch(recipe);
         batch.step = 3;
-        let (after, _) = model
-            .clone()
-            .train_step(recipe, &mut optim, &batch, &device);
+        let (after, _) =
+            model
+                .clone()
+                .train_step(recipe, &mut optim, &batch, std::slice::from_ref(&device));
         (model, after)
     };
     let jepa = recipe(

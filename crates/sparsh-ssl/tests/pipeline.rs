@@ -3,8 +3,12 @@
 
 use std::path::Path;
 
+use burn::prelude::Device;
 use image::{Rgb, RgbImage};
-use sparsh_ssl::data::{Dataset, Sampler};
+use sparsh_ssl::data::{
+    AugmentConfig, Dataset, Sampler, Stacking, generated_sequences, preprocess, read_image,
+};
+use sparsh_ssl::device::Devices;
 use sparsh_ssl::probe::ProbeSet;
 use sparsh_ssl::recipe::Recipe;
 use sparsh_ssl::train::{
@@ -94,6 +98,7 @@ fn resume_continues_the_same_loss_curve() {
         out: tmp.path().join(out),
         resume,
         max_steps,
+        devices: Devices::cpu(),
     };
     let full = run(&r, &opts("full", false, None), &mut |_| {}).unwrap();
     assert_eq!(full.steps, 6);
@@ -183,10 +188,15 @@ fn pickle_layout_loads_as_sequences() {
     let d = Dataset::load(tmp.path(), [32, 24]).unwrap();
     assert_eq!(d.sequences.len(), 2);
     assert_eq!(d.num_frames(), 14);
-    assert_eq!(d.sequences[0].frames[0].len(), 3 * 32 * 24);
+    assert_eq!(
+        d.sequences[0].frames[0].read([32, 24]).unwrap().len(),
+        3 * 32 * 24
+    );
     // the blob is brighter than the background: some red values well above the 0.5 grey
     assert!(
         d.sequences[0].frames[3]
+            .read([32, 24])
+            .unwrap()
             .iter()
             .take(32 * 24)
             .any(|&v| v > 0.6)
@@ -207,14 +217,23 @@ fn label_budget_thins_the_fitted_samples_only() {
     )
     .unwrap();
     // 10 sequences of 12 frames, I_t ⊕ I_{t−5}: 7 samples each; sequences 4 and 9 held out
-    let (fitted, held_out) = ProbeSet::new(&sampler, 1000, 4, 1.0).unwrap().sizes();
+    let (fitted, held_out) = ProbeSet::new(&sampler, 1000, 4, 1.0)
+        .unwrap()
+        .unwrap()
+        .sizes();
     assert_eq!((fitted, held_out), (56, 14));
-    let (quarter, held_out_q) = ProbeSet::new(&sampler, 1000, 4, 0.25).unwrap().sizes();
+    let (quarter, held_out_q) = ProbeSet::new(&sampler, 1000, 4, 0.25)
+        .unwrap()
+        .unwrap()
+        .sizes();
     assert_eq!((quarter, held_out_q), (14, 14));
-    let (tenth, _) = ProbeSet::new(&sampler, 1000, 4, 0.1).unwrap().sizes();
+    let (tenth, _) = ProbeSet::new(&sampler, 1000, 4, 0.1)
+        .unwrap()
+        .unwrap()
+        .sizes();
     assert_eq!(tenth, 5);
     // a budget that keeps no training sample leaves nothing to fit
-    assert!(ProbeSet::new(&sampler, 1000, 4, 0.001).is_none());
+    assert!(ProbeSet::new(&sampler, 1000, 4, 0.001).unwrap().is_none());
     // the raw-patch probe has no ridge fallback: without attentive epochs it refuses
     let mut ridge_only = r.clone();
     ridge_only.log.probe_epochs = 0;
@@ -247,6 +266,7 @@ fn standalone_probe_reproduces_the_logged_probe() {
         out: out.clone(),
         resume: false,
         max_steps: None,
+        devices: Devices::cpu(),
     };
     let summary = run(&r, &opts, &mut |_| {}).unwrap();
     let rows = probe_encoders(
@@ -254,6 +274,7 @@ fn standalone_probe_reproduces_the_logged_probe() {
         std::slice::from_ref(&data),
         Some(&out.join("encoder.safetensors")),
         &[r.seed],
+        &Device::flex(),
     )
     .unwrap();
     let (random, trained) = rows[0];
@@ -269,6 +290,7 @@ fn standalone_probe_reproduces_the_logged_probe() {
         std::slice::from_ref(&data),
         &[r.seed, r.seed + 1],
         &[r.seed],
+        &Device::flex(),
     )
     .unwrap();
     assert_eq!(draws[0][0].rmse_mn, logged.0.rmse_mn);
@@ -293,9 +315,15 @@ fn standalone_probe_reproduces_the_logged_probe() {
     )
     .unwrap();
     std::fs::write(unlabelled.join("dataset_0.pkl"), pickle).unwrap();
-    let err = probe_encoders(&r, std::slice::from_ref(&unlabelled), None, &[0])
-        .unwrap_err()
-        .to_string();
+    let err = probe_encoders(
+        &r,
+        std::slice::from_ref(&unlabelled),
+        None,
+        &[0],
+        &Device::flex(),
+    )
+    .unwrap_err()
+    .to_string();
     assert!(
         err.contains("unlabelled") && err.contains("force labels"),
         "{err}"
@@ -309,6 +337,7 @@ fn standalone_probe_reproduces_the_logged_probe() {
         out: tmp.path().join("separate"),
         resume: false,
         max_steps: None,
+        devices: Devices::cpu(),
     };
     let summary = run(&r, &separate, &mut |_| {}).unwrap();
     let rows = probe_encoders(
@@ -316,6 +345,7 @@ fn standalone_probe_reproduces_the_logged_probe() {
         std::slice::from_ref(&data),
         Some(&separate.out.join("encoder.safetensors")),
         &[r.seed],
+        &Device::flex(),
     )
     .unwrap();
     assert_eq!(rows[0].0.rmse_mn, summary.probe_initial.unwrap().rmse_mn);
@@ -422,6 +452,7 @@ fn bad_inputs_are_one_line_errors() {
         out: tmp.path().join("run"),
         resume: false,
         max_steps: Some(2),
+        devices: Devices::cpu(),
     };
     run(&r, &opts, &mut |_| {}).unwrap();
     let model = opts.out.join("checkpoint/model.bpk");
@@ -430,6 +461,7 @@ fn bad_inputs_are_one_line_errors() {
     let resume = RunOptions {
         resume: true,
         max_steps: None,
+        devices: Devices::cpu(),
         ..opts.clone()
     };
     one_line(
@@ -448,4 +480,71 @@ fn bad_inputs_are_one_line_errors() {
         run(&other, &resume, &mut |_| {}).unwrap_err().to_string(),
         "model.bpk",
     );
+}
+
+/// The loader streams: opening a dataset reads no frame, a sampler capped below the dataset's
+/// decoded size never holds more than its cap through two epochs, and its batches are the ones
+/// an uncapped sampler (which ends up holding everything) and the official preprocessing of each
+/// file give. A frame file that turns unreadable is an error naming it, not a panic.
+#[test]
+fn a_dataset_larger_than_the_memory_cap_streams_from_disk() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("data");
+    // 12 sequences of 40 frames at 240×180: 480 frames of 3·240·180 f32 = 518 400 B each,
+    // 249 MB decoded, against a 32 MiB cap
+    write_generated(&data, 12, 40);
+    let size = [240, 180];
+    let frame_bytes = 3 * size[0] * size[1] * 4;
+    let dataset = std::sync::Arc::new(Dataset::load(&data, size).unwrap());
+    assert!(
+        dataset.sequences[0].frames[0].decoded().is_none(),
+        "opening reads no frame"
+    );
+    let total = dataset.num_frames() * frame_bytes;
+    let cap_mb = 32;
+    assert!(total > 4 * (cap_mb << 20), "{total} B");
+    let stacking = Stacking::Channels(vec![0, 5]);
+    let capped = Sampler::new(dataset.clone(), stacking.clone())
+        .unwrap()
+        .with_cache_mb(cap_mb);
+    let unlimited = Sampler::new(dataset.clone(), stacking).unwrap();
+    let aug = AugmentConfig::default();
+    let steps = 2 * capped.samples.len() / 16;
+    let mut peak = 0;
+    for step in 0..steps {
+        let picks = capped.picks(3, step, 16);
+        let a = capped.batch(&picks, &aug, 3, step).unwrap();
+        let b = unlimited.batch(&picks, &aug, 3, step).unwrap();
+        assert_eq!(a.values, b.values, "step {step}");
+        peak = peak.max(capped.cached_bytes());
+        assert!(capped.cached_bytes() <= cap_mb << 20);
+    }
+    assert!(peak + frame_bytes > cap_mb << 20, "the cap fills: {peak} B");
+    assert_eq!(
+        unlimited.cached_bytes(),
+        total,
+        "uncapped: every frame once"
+    );
+    // a sample against the official preprocessing of its two files
+    let picks = [7];
+    let b = capped.batch(&picks, &AugmentConfig::none(), 0, 0).unwrap();
+    let (s, t) = capped.samples[7];
+    let seqs = generated_sequences(&data).unwrap();
+    let bg = read_image(&seqs[s].background).unwrap();
+    let now = preprocess(&read_image(&seqs[s].frames[t]).unwrap(), &bg, size).unwrap();
+    let back = preprocess(&read_image(&seqs[s].frames[t - 5]).unwrap(), &bg, size).unwrap();
+    assert_eq!(b.values, [now, back].concat());
+    // a frame that cannot be read when a batch needs it
+    let victim = capped
+        .samples
+        .iter()
+        .position(|&(s, t)| s == 11 && t == 39)
+        .unwrap();
+    std::fs::write(&seqs[11].frames[39], b"not a png").unwrap();
+    let err = Sampler::new(dataset, Stacking::Channels(vec![0, 5]))
+        .unwrap()
+        .batch(&[victim], &AugmentConfig::none(), 0, 0)
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("000479.png") && !err.contains('\n'), "{err}");
 }

@@ -90,7 +90,8 @@ fn paper_base_recipes_take_a_step() {
             shape,
             forces: None,
         };
-        let (_, loss) = model.train_step(&recipe, &mut optim, &batch, &device);
+        let (_, loss) =
+            model.train_step(&recipe, &mut optim, &batch, std::slice::from_ref(&device));
         assert!(loss.is_finite(), "{name}: loss {loss}");
     }
 }

@@ -117,24 +117,33 @@ fn each_pack_frame_is_an_unlabelled_sequence_seen_from_rest() {
         assert!(rest.iter().all(|&v| v == GREY));
     }
     // the frame equal to f0 is unchanged everywhere
-    assert!(d.sequences[2].frames[0].iter().all(|&v| v == GREY));
+    assert!(
+        d.sequences[2].frames[0]
+            .decoded()
+            .unwrap()
+            .iter()
+            .all(|&v| v == GREY)
+    );
     // frame 0's red patch in the landscape top-left corner (16×12 pixels) lands in the portrait
     // bottom-left corner (12 wide, 16 high; 6×8 after halving): red (100/255 + 0.5) stored as
     // 8 bits, green and blue unchanged, so the pack's BGR was read as BGR
-    let f = &d.sequences[0].frames[0];
+    let f = d.sequences[0].frames[0].decoded().unwrap();
     let at = |c: usize, y: usize, x: usize| f[(c * h + y) * w + x];
     assert_eq!(at(0, 28, 2), 227.0 / 255.0);
     assert_eq!(at(1, 28, 2), GREY);
     assert_eq!(at(2, 28, 2), GREY);
     assert_eq!(at(0, 2, 20), GREY);
     // frame 1's patch (top-right corner) lands top-left
-    assert_eq!(d.sequences[1].frames[0][2 * w + 2], 227.0 / 255.0);
+    assert_eq!(
+        d.sequences[1].frames[0].decoded().unwrap()[2 * w + 2],
+        227.0 / 255.0
+    );
 
     // I_t ⊕ I_{t−5} at t = 0: the frame, then the rest frame
     let data = Arc::new(d);
     let sampler = Sampler::new(data.clone(), Stacking::Channels(vec![0, 5])).unwrap();
     assert_eq!(sampler.samples, vec![(0, 0), (1, 0), (2, 0)]);
-    let b = sampler.batch(&[0], &AugmentConfig::none(), 0, 0);
+    let b = sampler.batch(&[0], &AugmentConfig::none(), 0, 0).unwrap();
     assert_eq!(b.shape, [1, 1, 6, h, w]);
     assert!(b.forces.is_none());
     let expected = preprocess(&frame(0), &f0(), SIZE).unwrap();
@@ -143,7 +152,7 @@ fn each_pack_frame_is_an_unlabelled_sequence_seen_from_rest() {
     // V-JEPA clips [t, t−2, t−4, t−6]: the frame, then three rest frames
     let sampler = Sampler::new(data, Stacking::Frames(vec![0, 2, 4, 6])).unwrap();
     assert_eq!(sampler.samples.len(), 3);
-    let b = sampler.batch(&[1], &AugmentConfig::none(), 0, 0);
+    let b = sampler.batch(&[1], &AugmentConfig::none(), 0, 0).unwrap();
     assert_eq!(b.shape, [1, 4, 3, h, w]);
     let expected = preprocess(&frame(1), &f0(), SIZE).unwrap();
     assert_eq!(&b.values[..3 * h * w], &expected[..]);
@@ -158,7 +167,13 @@ fn the_pack_file_and_its_directory_load_alike() {
     let by_file = Dataset::load(&dir.join("dataPack.npz"), SIZE).unwrap();
     assert_eq!(by_dir.sequences.len(), by_file.sequences.len());
     for (a, b) in by_dir.sequences.iter().zip(&by_file.sequences) {
-        assert_eq!(a.frames, b.frames);
+        let decoded = |s: &sparsh_ssl::data::Sequence| -> Vec<Vec<f32>> {
+            s.frames
+                .iter()
+                .map(|f| f.decoded().unwrap().to_vec())
+                .collect()
+        };
+        assert_eq!(decoded(a), decoded(b));
         assert_eq!(a.rest_frame, b.rest_frame);
     }
     // any file name ending in .npz is read as a pack
@@ -236,6 +251,8 @@ fn real_taxim_packs_load_as_one_sequence_per_press() {
         assert_eq!(d.sequences.len(), presses, "{sensor}");
         for (k, s) in d.sequences.iter().enumerate() {
             let change = s.frames[0]
+                .decoded()
+                .unwrap()
                 .iter()
                 .map(|v| (v - GREY).abs())
                 .fold(0.0, f32::max);

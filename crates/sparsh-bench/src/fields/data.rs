@@ -73,7 +73,7 @@ impl FramePairs {
             ));
         }
         let label_rows = crate::labels::read_label_rows(dir)?;
-        let dataset = Dataset::load_generated(dir, size)?;
+        let dataset = Dataset::load_generated(dir, size)?.into_decoded()?;
         let mut sequences = Vec::with_capacity(label_rows.len());
         for rows in label_rows {
             let first = &rows[0];
@@ -140,7 +140,12 @@ impl FramePairs {
     /// Frames `t` and `t − offset` of a pair, `[3, height, width]` each.
     pub fn frames(&self, p: Pair) -> (&Frame, &Frame) {
         let seq = &self.dataset.sequences[p.sequence];
-        (&seq.frames[p.t], &seq.frames[p.t - self.offset])
+        let frame = |t: usize| {
+            seq.frames[t]
+                .decoded()
+                .expect("FramePairs::load decodes every frame")
+        };
+        (frame(p.t), frame(p.t - self.offset))
     }
 }
 

@@ -413,7 +413,7 @@ mod tests {
             dir: std::path::PathBuf::new(),
             dataset: Dataset {
                 sequences: vec![Sequence {
-                    frames,
+                    frames: Sequence::decoded(frames),
                     forces: None,
                     rest_frame: None,
                 }],
