@@ -3,17 +3,22 @@
 //! (stick, partial slip, gross sliding). Run with RAYON_NUM_THREADS=1 or 2.
 //!
 //! `cargo run --release --example bench -- [halfspace|layered] [normal|slip]`, or
-//! `cargo run --release --example bench -- scene <scene.toml>` to time a scene's contact solves.
+//! `cargo run --release --example bench -- scene <scene.toml> [stride] [halfspace|layered]
+//! [compare]` to time a scene's contact solves on its mechanics grid (stride and rung overriding
+//! the scene's), with `compare` also by FISTA and from a cold start, as ratios.
 //!
 //! `cargo run --release --example bench -- fem [frames]`: the finite-element rung's deep press, a
 //! sphere of 6 mm radius pressed 1 mm into a 3 mm DIGIT gel (E = 300 kPa, ν = 0.48, μ = 1) in
 //! `frames` equal steps (default 20), fields on the 320 × 240 grid: seconds and Newton iterations
 //! per frame with and without warm start, against the layered rung on the same frames.
+use std::alloc::{GlobalAlloc, Layout, System};
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Instant;
 
 use glam::DVec3;
 use sparsh_contact::{
-    ContactInput, ContactSolver, Fem, FemOptions, NormalControl, rigid_shift_mm, solver_for,
+    Bem, BemOptions, BemStats, ContactInput, ContactSolver, Fem, FemOptions, NormalControl,
+    TangentialMethod, rigid_shift_mm, solver_for,
 };
 use sparsh_scene::{GapField, Gel, Grid, Indenter, Pose, SolverKind};
 
@@ -35,42 +40,47 @@ const DIGIT_GEL: Gel = Gel {
 fn main() {
     let args: Vec<String> = std::env::args().collect();
     if args.get(1).map(String::as_str) == Some("scene") {
-        let scene = sparsh_scene::Scene::load(std::path::Path::new(&args[2])).expect("scene");
-        let grid = scene.grid();
-        let mut solver = solver_for(scene.solver, &scene.gel, grid);
-        let (mut total, mut worst, mut previous) = (0.0f64, 0.0f64, None::<Pose>);
-        let frames = scene.frames();
-        for f in &frames {
-            let gap = GapField::cast(&scene.indenter, &f.pose, grid);
-            let shift = match &previous {
-                Some(p) => rigid_shift_mm(p, &f.pose, &gap),
-                None => vec![[0.0; 2]; grid.len()],
-            };
-            let normal = f
-                .normal_force_n
-                .map_or(NormalControl::Approach, NormalControl::Force);
-            let start = Instant::now();
-            solver
-                .solve(&ContactInput {
-                    gap: &gap,
-                    normal,
-                    rigid_shift_mm: &shift,
-                })
-                .expect("solve");
-            let t = start.elapsed().as_secs_f64();
-            total += t;
-            worst = worst.max(t);
-            previous = Some(f.pose);
+        let mut scene = sparsh_scene::Scene::load(std::path::Path::new(&args[2])).expect("scene");
+        if let Some(stride) = args.get(3) {
+            scene.mechanics_stride = stride.parse().expect("stride");
         }
-        println!(
-            "{}: {:?} {:.1} ms/frame mean, {:.1} ms worst, {} frames (threads {})",
-            args[2],
-            scene.solver,
-            1e3 * total / frames.len() as f64,
-            1e3 * worst,
-            frames.len(),
-            rayon::current_num_threads()
+        let kind = match args.get(4).map(String::as_str) {
+            Some("halfspace") => SolverKind::Halfspace,
+            Some("layered") => SolverKind::Layered,
+            _ => scene.solver,
+        };
+        let newton = time_scene(
+            &scene,
+            kind,
+            BemOptions::default(),
+            "semi-smooth Newton, warm",
         );
+        if args.get(5).map(String::as_str) == Some("compare") {
+            for (label, options) in [
+                (
+                    "FISTA, warm",
+                    BemOptions {
+                        tangential_method: TangentialMethod::Fista,
+                        ..BemOptions::default()
+                    },
+                ),
+                (
+                    "semi-smooth Newton, cold",
+                    BemOptions {
+                        warm_start: false,
+                        ..BemOptions::default()
+                    },
+                ),
+            ] {
+                let other = time_scene(&scene, kind, options, label);
+                println!(
+                    "  {label} / semi-smooth Newton, warm: {:.2}× the time, {:.2}× the tangential time, {:.2}× the tangential convolutions",
+                    other.total_s / newton.total_s,
+                    other.tangential_s / newton.tangential_s,
+                    other.tangential_convolutions as f64 / newton.tangential_convolutions as f64
+                );
+            }
+        }
         return;
     }
     if args.get(1).map(String::as_str) == Some("fem") {
@@ -131,6 +141,107 @@ fn main() {
         states
     );
 }
+
+/// Times the contact solves of a scene's frames on its mechanics grid (the simulator's grid: the
+/// image at `mechanics_stride` pixels per cell plus the margin) and prints the boundary-element
+/// rung's breakdown per frame; returns the sums over the frames.
+fn time_scene(
+    scene: &sparsh_scene::Scene,
+    kind: SolverKind,
+    options: BemOptions,
+    label: &str,
+) -> BemStats {
+    let grid = scene.mechanics_grid();
+    let mut solver = match kind {
+        SolverKind::Halfspace => Bem::halfspace(scene.gel, grid),
+        SolverKind::Layered => Bem::layered(scene.gel, grid),
+        other => panic!("the scene benchmark times the boundary-element rungs, not {other:?}"),
+    }
+    .with_options(options);
+    let (mut worst_s, mut previous) = (0.0f64, None::<Pose>);
+    let mut sum = BemStats::default();
+    let frames = scene.frames();
+    let allocations_before = ALLOCATIONS.load(Ordering::Relaxed);
+    for f in &frames {
+        let gap = GapField::cast(&scene.indenter, &f.pose, grid);
+        let shift = match &previous {
+            Some(p) => rigid_shift_mm(p, &f.pose, &gap),
+            None => vec![[0.0; 2]; grid.len()],
+        };
+        let normal = f
+            .normal_force_n
+            .map_or(NormalControl::Approach, NormalControl::Force);
+        let start = Instant::now();
+        solver
+            .solve(&ContactInput {
+                gap: &gap,
+                normal,
+                rigid_shift_mm: &shift,
+            })
+            .expect("solve");
+        let t = start.elapsed().as_secs_f64();
+        worst_s = worst_s.max(t);
+        let s = solver.stats();
+        sum.normal_convolutions += s.normal_convolutions;
+        sum.normal_windows += s.normal_windows;
+        sum.tangential_convolutions += s.tangential_convolutions;
+        sum.normal_s += s.normal_s;
+        sum.tangential_s += s.tangential_s;
+        sum.kernel_s += s.kernel_s;
+        sum.total_s += t;
+        previous = Some(f.pose);
+    }
+    let n = frames.len() as f64;
+    // Allocations per frame, casting the gap field and the rigid shifts included (3 per frame).
+    let allocations = (ALLOCATIONS.load(Ordering::Relaxed) - allocations_before) as f64 / n;
+    println!(
+        "{kind:?}, {label}, {}×{} cells of {:.4} mm: {:.1} ms/frame mean, {:.1} ms worst, {} frames (threads {}), {allocations:.0} allocations/frame",
+        grid.nx,
+        grid.ny,
+        grid.cell_mm,
+        1e3 * sum.total_s / n,
+        1e3 * worst_s,
+        frames.len(),
+        rayon::current_num_threads()
+    );
+    println!(
+        "  per frame: normal {:.1} ms ({:.1} convolutions, {:.2} windows), tangential {:.1} ms ({:.1} convolutions), rest {:.1} ms; kernel spectra of new window sizes {:.1} ms",
+        1e3 * sum.normal_s / n,
+        sum.normal_convolutions as f64 / n,
+        sum.normal_windows as f64 / n,
+        1e3 * sum.tangential_s / n,
+        sum.tangential_convolutions as f64 / n,
+        1e3 * (sum.total_s - sum.normal_s - sum.tangential_s) / n,
+        1e3 * sum.kernel_s / n,
+    );
+    sum
+}
+
+/// Counts heap allocations, to show what a frame allocates.
+struct CountingAllocator;
+
+static ALLOCATIONS: AtomicUsize = AtomicUsize::new(0);
+
+// SAFETY: forwards every call to the system allocator unchanged.
+unsafe impl GlobalAlloc for CountingAllocator {
+    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+        ALLOCATIONS.fetch_add(1, Ordering::Relaxed);
+        // SAFETY: the caller's contract is the system allocator's.
+        unsafe { System.alloc(layout) }
+    }
+    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        // SAFETY: as above.
+        unsafe { System.dealloc(ptr, layout) }
+    }
+    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
+        ALLOCATIONS.fetch_add(1, Ordering::Relaxed);
+        // SAFETY: as above.
+        unsafe { System.realloc(ptr, layout, new_size) }
+    }
+}
+
+#[global_allocator]
+static GLOBAL: CountingAllocator = CountingAllocator;
 
 /// The deep-press benchmark of the finite-element rung (see the module comment).
 fn deep_press(frames: usize) {

@@ -3,13 +3,15 @@
 //! Per frame: (1) normal contact by the Polonsky–Keer conjugate gradient (Wear 231, 1999) on a
 //! window around the candidate contact, under displacement or load control; (2) the tangential
 //! tractions by an incremental Coulomb problem with the previous frame's tractions and
-//! displacements as history; (3) the displacement fields on the whole grid by one more DC-FFT
-//! convolution. The window keeps the cost proportional to the contact patch; a solution whose
-//! contact reaches the window edge, or whose deformed gap is negative outside it, is solved
-//! again on a larger window, so the window never changes the answer.
+//! displacements as history, solved by semi-smooth Newton with conjugate-gradient steps; (3) the
+//! displacement fields on the whole grid by one more DC-FFT convolution. The window keeps the
+//! cost proportional to the contact patch; a solution whose contact reaches the window edge, or
+//! whose deformed gap is negative outside it, is solved again on a larger window, so the window
+//! never changes the answer. Each frame starts from the previous one's solution.
 
 use std::collections::HashMap;
 use std::sync::Arc;
+use std::time::Instant;
 
 use rayon::prelude::*;
 use sparsh_scene::{Gel, Grid};
@@ -26,8 +28,16 @@ pub struct BemOptions {
     /// The tangential iteration stops when its projected-gradient step is below this fraction of
     /// the friction bound ‖μp‖.
     pub tangential_tolerance: f64,
-    /// Iteration cap of each problem; reaching it is [`ContactError::NotConverged`].
+    /// Iteration cap of each problem (and of each conjugate-gradient solve inside a Newton
+    /// step); reaching it is [`ContactError::NotConverged`].
     pub max_iterations: usize,
+    /// The tangential method.
+    pub tangential_method: TangentialMethod,
+    /// Start each frame's iterations from the previous frames' solution (pressures and
+    /// tractions extrapolated linearly from the last two frames, the normal window around the
+    /// last contact); `false` starts from a Hertz-like guess and zero tractions, the path
+    /// history being used either way.
+    pub warm_start: bool,
 }
 
 impl Default for BemOptions {
@@ -36,8 +46,30 @@ impl Default for BemOptions {
             normal_tolerance: 1e-8,
             tangential_tolerance: 1e-6,
             max_iterations: 5000,
+            tangential_method: TangentialMethod::SemismoothNewton,
+            warm_start: true,
         }
     }
+}
+
+/// Work and wall time of the last frame solved by a boundary-element rung.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct BemStats {
+    /// Convolutions spent on the normal problem, summed over window enlargements.
+    pub normal_convolutions: usize,
+    /// Windows the normal problem was solved on (1 unless the contact escaped the first).
+    pub normal_windows: usize,
+    /// Convolutions spent on the tangential problem.
+    pub tangential_convolutions: usize,
+    /// Wall time of the normal problem (s), window enlargements and full-grid uz included.
+    pub normal_s: f64,
+    /// Wall time spent computing the kernel spectra of new window sizes (s), included in the
+    /// normal and tangential times.
+    pub kernel_s: f64,
+    /// Wall time of the tangential problem (s).
+    pub tangential_s: f64,
+    /// Wall time of the frame (s).
+    pub total_s: f64,
 }
 
 /// Kernel spectra of one window size.
@@ -51,13 +83,21 @@ struct Spectra {
     /// Largest eigenvalue of the 2 × 2 tangential symbol (mm/kPa): a Lipschitz constant of the
     /// tangential energy's gradient on the window.
     tangential_lipschitz: f64,
+    /// Displacement of a cell under its own unit traction, along x and along y (mm/kPa): the
+    /// diagonal of the tangential influence matrix.
+    self_xx_mm_per_kpa: f64,
+    self_yy_mm_per_kpa: f64,
 }
 
 /// Path history: the previous frame's solution on the whole grid.
-#[derive(Debug, Clone)]
+#[derive(Debug)]
 struct History {
     pressure_kpa: Vec<f64>,
+    /// The pressure of the frame before, if that frame had contact.
+    pressure_before_kpa: Option<Vec<f64>>,
     traction_kpa: [Vec<f64>; 2],
+    /// The tractions of the frame before, if that frame had contact.
+    traction_before_kpa: Option<[Vec<f64>; 2]>,
     u_tangential_mm: [Vec<f64>; 2],
     offset_mm: f64,
 }
@@ -150,12 +190,14 @@ pub struct Bem {
     options: BemOptions,
     cache: HashMap<(usize, usize), Arc<Spectra>>,
     history: Option<History>,
+    stats: BemStats,
 }
 
 /// Result of the normal problem on a window.
 struct NormalSolution {
     pressure_kpa: Vec<f64>,
     offset_mm: f64,
+    convolutions: usize,
 }
 
 impl Bem {
@@ -169,6 +211,7 @@ impl Bem {
             options: BemOptions::default(),
             cache: HashMap::new(),
             history: None,
+            stats: BemStats::default(),
         }
     }
 
@@ -200,10 +243,16 @@ impl Bem {
         self
     }
 
+    /// Work done on the last frame.
+    pub fn stats(&self) -> BemStats {
+        self.stats
+    }
+
     fn spectra(&mut self, nx: usize, ny: usize) -> Arc<Spectra> {
         if let Some(s) = self.cache.get(&(nx, ny)) {
             return s.clone();
         }
+        let start = Instant::now();
         let (cell, e, nu) = (
             self.grid.cell_mm,
             self.gel.youngs_modulus_kpa,
@@ -231,8 +280,9 @@ impl Bem {
             conv.kernel_spectrum(|di, dj| t[dj.unsigned_abs() * nx + di.unsigned_abs()])
         };
         let zz = even(&table(Component::Zz));
-        let xx = even(&table(Component::Xx));
-        let yy = even(&table(Component::Yy));
+        let (txx, tyy) = (table(Component::Xx), table(Component::Yy));
+        let xx = even(&txx);
+        let yy = even(&tyy);
         let t = table(Component::Xy);
         let xy = conv.kernel_spectrum(|di, dj| {
             (di.signum() * dj.signum()) as f64 * t[dj.unsigned_abs() * nx + di.unsigned_abs()]
@@ -252,8 +302,11 @@ impl Bem {
             yy,
             xy,
             tangential_lipschitz,
+            self_xx_mm_per_kpa: txx[0],
+            self_yy_mm_per_kpa: tyy[0],
         });
         self.cache.insert((nx, ny), s.clone());
+        self.stats.kernel_s += start.elapsed().as_secs_f64();
         s
     }
 
@@ -267,7 +320,9 @@ impl Bem {
     /// Polonsky & Keer (1999) conjugate gradient on a window: minimise the complementary energy
     /// with p ≥ 0 and gap h + u(p) − δ ≥ 0, equality where p > 0. Under displacement control δ
     /// is fixed at `offset_mm`; under load control the mean gap over the contact set is removed
-    /// at every step and Σ p dA is rescaled to the load, and δ comes out as that mean.
+    /// at every step and Σ p dA is rescaled to the load, and δ comes out as that mean. A step
+    /// that neither clips a cell nor adds one moves u = Kp by −τ K t (times the load rescaling),
+    /// so such steps cost one convolution instead of two.
     fn solve_normal(
         &self,
         spectra: &Spectra,
@@ -280,18 +335,21 @@ impl Bem {
         let n = gap_mm.len();
         let da = self.grid.cell_area_mm2() * 1e-3; // N per kPa
         let mut p = initial_kpa;
-        let mut t = vec![0.0; n];
-        let mut g = vec![0.0; n];
+        let [mut t, mut g, mut u_mm, mut kt_mm, mut p_old] = std::array::from_fn(|_| vec![0.0; n]);
+        let mut u_current = false;
         let mut g_old = 1.0;
         let mut conjugate = false;
-        let mut mean_gap = offset_mm;
         let mut change = f64::INFINITY;
+        let mut convolutions = 0;
         for _ in 0..self.options.max_iterations {
-            let u = conv.apply(&spectra.zz, &p);
+            if !u_current {
+                conv.apply_into(&spectra.zz, &p, &mut u_mm);
+                convolutions += 1;
+            }
             let mut sum_g = 0.0;
             let mut count = 0usize;
             for k in 0..n {
-                g[k] = gap_mm[k] + u[k];
+                g[k] = gap_mm[k] + u_mm[k];
                 if p[k] > 0.0 {
                     sum_g += g[k];
                     count += 1;
@@ -300,7 +358,7 @@ impl Bem {
             if count == 0 {
                 return Err(self.out_of_validity("the contact set emptied"));
             }
-            mean_gap = match load_n {
+            let mean_gap = match load_n {
                 Some(_) => sum_g / count as f64,
                 None => offset_mm,
             };
@@ -317,27 +375,40 @@ impl Bem {
             }
             g_old = big_g;
             if big_g == 0.0 {
-                break;
+                return Ok(NormalSolution {
+                    pressure_kpa: p,
+                    offset_mm: mean_gap,
+                    convolutions,
+                });
             }
-            let mut r = conv.apply(&spectra.zz, &t);
-            if load_n.is_some() {
-                let mean_r =
-                    (0..n).filter(|&k| p[k] > 0.0).map(|k| r[k]).sum::<f64>() / count as f64;
-                r.iter_mut().for_each(|v| *v -= mean_r);
-            }
+            conv.apply_into(&spectra.zz, &t, &mut kt_mm);
+            convolutions += 1;
+            // Under load control the response r = Kt − mean(Kt) over the contact set.
+            let mean_r = if load_n.is_some() {
+                (0..n)
+                    .filter(|&k| p[k] > 0.0)
+                    .map(|k| kt_mm[k])
+                    .sum::<f64>()
+                    / count as f64
+            } else {
+                0.0
+            };
             let (mut gt, mut rt) = (0.0, 0.0);
             for k in 0..n {
                 if p[k] > 0.0 {
                     gt += g[k] * t[k];
-                    rt += r[k] * t[k];
+                    rt += (kt_mm[k] - mean_r) * t[k];
                 }
             }
             let tau = gt / rt;
             let mut overlap = false;
-            let p_old = p.clone();
+            let mut clipped = false;
+            p_old.copy_from_slice(&p);
             for k in 0..n {
                 if p[k] > 0.0 {
-                    p[k] = (p[k] - tau * t[k]).max(0.0);
+                    let v = p[k] - tau * t[k];
+                    clipped |= v < 0.0;
+                    p[k] = v.max(0.0);
                 } else if g[k] < 0.0 {
                     p[k] -= tau * g[k];
                     overlap = true;
@@ -347,13 +418,25 @@ impl Bem {
             if p.iter().all(|&v| v == 0.0) {
                 // The step lifted every cell off (a guess far too stiff, e.g. a flat face pressed
                 // uniformly): halve the previous pressures and restart the conjugate directions.
-                p = p_old.iter().map(|v| 0.5 * v).collect();
+                for (v, old) in p.iter_mut().zip(&p_old) {
+                    *v = 0.5 * old;
+                }
                 conjugate = false;
+                u_current = false;
                 continue;
             }
-            if let Some(load) = load_n {
-                let total = p.iter().sum::<f64>() * da;
-                p.iter_mut().for_each(|v| *v *= load / total);
+            let factor = match load_n {
+                Some(load) => load / (p.iter().sum::<f64>() * da),
+                None => 1.0,
+            };
+            if load_n.is_some() {
+                p.iter_mut().for_each(|v| *v *= factor);
+            }
+            u_current = !(overlap || clipped);
+            if u_current {
+                for (u, kt) in u_mm.iter_mut().zip(&kt_mm) {
+                    *u = factor * (*u - tau * kt);
+                }
             }
             let sum_p: f64 = p.iter().sum();
             change = p
@@ -369,14 +452,9 @@ impl Bem {
                 return Ok(NormalSolution {
                     pressure_kpa: p,
                     offset_mm: mean_gap,
+                    convolutions,
                 });
             }
-        }
-        if g_old == 0.0 {
-            return Ok(NormalSolution {
-                pressure_kpa: p,
-                offset_mm: mean_gap,
-            });
         }
         Err(ContactError::NotConverged {
             solver: self.name,
@@ -389,54 +467,408 @@ impl Bem {
     /// displacement plus the indenter's rigid shift), find q minimising ½ qᵀKq − wᵀq subject to
     /// |q_i| ≤ μ p_i. Its optimality conditions are Coulomb's law with maximum dissipation: the
     /// slip increment s = w − Kq vanishes where |q| < μp and is parallel to q where |q| = μp.
-    /// Solved by accelerated projected gradient (FISTA, Beck & Teboulle 2009) with adaptive
-    /// restart (O'Donoghue & Candès 2015), step 1/L with L the largest eigenvalue of the
-    /// tangential symbol. Returns the tractions and the slip increments.
+    /// Both methods start from `initial_kpa` (the tractions extrapolated from the last two
+    /// frames) and stop when the
+    /// projected-gradient step ‖P(q + s/L) − q‖, L the largest eigenvalue of the tangential
+    /// symbol, is below `tangential_tolerance` ‖μp‖. Returns the tractions, the slip increments
+    /// and the convolutions spent.
     fn solve_tangential(
         &self,
         spectra: &Spectra,
         bound_kpa: &[f64],
         target_mm: [&[f64]; 2],
-        initial_kpa: [Vec<f64>; 2],
-    ) -> Result<(Pair, Pair), ContactError> {
-        let conv = &spectra.conv;
-        let kernels = [
-            spectra.xx.as_slice(),
-            spectra.yy.as_slice(),
-            spectra.xy.as_slice(),
-        ];
-        let n = bound_kpa.len();
-        let step = 1.0 / spectra.tangential_lipschitz;
-        let project = |x: &mut [Vec<f64>; 2]| {
-            for k in 0..n {
-                let norm = x[0][k].hypot(x[1][k]);
-                if norm > bound_kpa[k] {
-                    let s = if norm > 0.0 { bound_kpa[k] / norm } else { 0.0 };
-                    x[0][k] *= s;
-                    x[1][k] *= s;
-                }
+        initial_kpa: Pair,
+    ) -> Result<(Pair, Pair, usize), ContactError> {
+        let mut problem = Tangential {
+            spectra,
+            bound_kpa,
+            target_mm,
+            scale_kpa: bound_kpa.iter().map(|b| b * b).sum::<f64>().sqrt(),
+            step_kpa_per_mm: 1.0 / spectra.tangential_lipschitz,
+            tolerance: self.options.tangential_tolerance,
+            max_iterations: self.options.max_iterations,
+            convolutions: 0,
+        };
+        let mut q = initial_kpa;
+        problem.project(&mut q);
+        let outcome = if problem.scale_kpa == 0.0 {
+            let mut s = problem.zeros();
+            problem.slip_increment(&q, &mut s);
+            Solved::Converged(q, s)
+        } else {
+            match self.options.tangential_method {
+                TangentialMethod::SemismoothNewton => match problem.newton(q) {
+                    // Newton stalled: the accelerated gradient from its best iterate.
+                    Solved::Stalled(q, _) => problem.fista(q),
+                    converged => converged,
+                },
+                TangentialMethod::Fista => problem.fista(q),
             }
         };
-        let scale = bound_kpa.iter().map(|b| b * b).sum::<f64>().sqrt();
-        let mut x = initial_kpa;
-        project(&mut x);
-        if scale == 0.0 {
-            let u = conv.apply_pair(kernels, &x[0], &x[1]);
-            let s = [0, 1].map(|c| (0..n).map(|k| target_mm[c][k] - u[c][k]).collect());
-            return Ok((x, s));
+        match outcome {
+            Solved::Converged(q, s) => Ok((q, s, problem.convolutions)),
+            Solved::Stalled(_, residual) if !residual.is_finite() => {
+                Err(self.out_of_validity("non-finite traction in the tangential problem"))
+            }
+            Solved::Stalled(_, residual) => Err(ContactError::NotConverged {
+                solver: self.name,
+                iterations: self.options.max_iterations,
+                residual,
+            }),
         }
-        let mut y = x.clone();
-        let mut t: f64 = 1.0;
-        let mut residual = f64::INFINITY;
-        for _ in 0..self.options.max_iterations {
-            let u = conv.apply_pair(kernels, &y[0], &y[1]);
-            let mut next = [vec![0.0; n], vec![0.0; n]];
-            for c in 0..2 {
-                for k in 0..n {
-                    next[c][k] = y[c][k] - step * (u[c][k] - target_mm[c][k]);
+    }
+}
+
+/// How the tangential problem of a frame is solved (both warm-started from the previous frame's
+/// tractions, both to the same projected-gradient tolerance).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum TangentialMethod {
+    /// Semi-smooth Newton on the projected-gradient fixed point q = P(q + s/L), each step a
+    /// symmetric positive definite system on the stick cells and the slip cells' tangential
+    /// components, solved by preconditioned conjugate gradients with FFT products (Hintermüller,
+    /// Ito & Kunisch, SIAM J. Optim. 13, 2002; for the frictional disk constraint Vollebregt,
+    /// J. Optim. Theory Appl. 162, 2014). Falls back to FISTA if a Newton step stalls.
+    SemismoothNewton,
+    /// Accelerated projected gradient (FISTA, Beck & Teboulle 2009) with adaptive restart
+    /// (O'Donoghue & Candès 2015), step 1/L.
+    Fista,
+}
+
+/// Outcome of a tangential method: tractions and slip increments, or the best tractions found
+/// and their residual.
+enum Solved {
+    Converged(Pair, Pair),
+    Stalled(Pair, f64),
+}
+
+/// One frame's tangential problem on a window.
+struct Tangential<'a> {
+    spectra: &'a Spectra,
+    bound_kpa: &'a [f64],
+    target_mm: [&'a [f64]; 2],
+    /// ‖μp‖ (kPa), the scale of the stopping test.
+    scale_kpa: f64,
+    /// The gradient step 1/L (kPa of traction per mm of slip).
+    step_kpa_per_mm: f64,
+    tolerance: f64,
+    max_iterations: usize,
+    convolutions: usize,
+}
+
+/// A cell's state in a semi-smooth Newton step.
+#[derive(Debug, Clone, Copy)]
+enum CellState {
+    /// No friction bound: the traction stays zero.
+    Free,
+    /// Inside the friction disk: both components are unknowns.
+    Stick,
+    /// On the disk: the traction's component along the unit vector `n` is held at the bound,
+    /// the one across it is an unknown with the extra compliance `lambda_mm_per_kpa`
+    /// = (1 − α)/(cα) from the projection's generalised Jacobian (α = μp/|z|, c = 1/L).
+    Slip { n: [f64; 2], lambda_mm_per_kpa: f64 },
+}
+
+impl Tangential<'_> {
+    fn zeros(&self) -> Pair {
+        [
+            vec![0.0; self.bound_kpa.len()],
+            vec![0.0; self.bound_kpa.len()],
+        ]
+    }
+
+    /// K q, into `out`.
+    fn apply(&mut self, q: &Pair, out: &mut Pair) {
+        let sp = self.spectra;
+        let [ox, oy] = out;
+        sp.conv.apply_pair_into(
+            [&sp.xx, &sp.yy, &sp.xy],
+            [&q[0], &q[1]],
+            [ox.as_mut_slice(), oy.as_mut_slice()],
+        );
+        self.convolutions += 1;
+    }
+
+    /// Projects every cell's traction onto its friction disk.
+    fn project(&self, q: &mut Pair) {
+        for (k, &bound) in self.bound_kpa.iter().enumerate() {
+            let norm = q[0][k].hypot(q[1][k]);
+            if norm > bound {
+                let f = if norm > 0.0 { bound / norm } else { 0.0 };
+                q[0][k] *= f;
+                q[1][k] *= f;
+            }
+        }
+    }
+
+    /// s = w − K q, into `s`.
+    fn slip_increment(&mut self, q: &Pair, s: &mut Pair) {
+        self.apply(q, s);
+        for (component, target) in s.iter_mut().zip(self.target_mm) {
+            for (v, w) in component.iter_mut().zip(target) {
+                *v = w - *v;
+            }
+        }
+    }
+
+    /// Semi-smooth Newton (see [`TangentialMethod::SemismoothNewton`]). With z = q + c s,
+    /// c = 1/L, the residual F = q − P(z) has the generalised Jacobian I − D(I − cK), D = I on
+    /// stick cells (|z| < μp) and α(I − nnᵀ) on slip cells (n = z/|z|, α = μp/|z|). A Newton
+    /// step fixes each slip cell's traction along n at the bound and solves, for the stick
+    /// tractions and the slip cells' components along t ⊥ n, (ΠKΠ + Λ) v = b with
+    /// Λ = (1 − α)/(cα) on the slip components: symmetric positive definite, so conjugate
+    /// gradients with a Jacobi preconditioner and inexact (forcing √‖F‖) solves.
+    fn newton(&mut self, mut q: Pair) -> Solved {
+        let n = self.bound_kpa.len();
+        let c = self.step_kpa_per_mm;
+        let (kxx, kyy) = (
+            self.spectra.self_xx_mm_per_kpa,
+            self.spectra.self_yy_mm_per_kpa,
+        );
+        let mut s = self.zeros();
+        let mut states = vec![CellState::Free; n];
+        let [mut d0, mut kd0, mut x, mut kx, mut r, mut z, mut p, mut kp] =
+            std::array::from_fn(|_| self.zeros());
+        let mut best = (f64::INFINITY, q.clone());
+        let mut since_best = 0;
+        let mut corrected = false;
+        self.slip_increment(&q, &mut s);
+        for _ in 0..self.max_iterations {
+            // Residual and cell states at q.
+            let mut residual_sq = 0.0;
+            for k in 0..n {
+                let g = self.bound_kpa[k];
+                let zk = [q[0][k] + c * s[0][k], q[1][k] + c * s[1][k]];
+                let norm = zk[0].hypot(zk[1]);
+                let projected = if norm > g {
+                    let f = g / norm;
+                    [zk[0] * f, zk[1] * f]
+                } else {
+                    zk
+                };
+                residual_sq += (q[0][k] - projected[0]).powi(2) + (q[1][k] - projected[1]).powi(2);
+                states[k] = if g == 0.0 {
+                    CellState::Free
+                } else if norm <= g {
+                    CellState::Stick
+                } else {
+                    CellState::Slip {
+                        n: [zk[0] / norm, zk[1] / norm],
+                        lambda_mm_per_kpa: (norm / g - 1.0) / c,
+                    }
+                };
+            }
+            let residual = residual_sq.sqrt() / self.scale_kpa;
+            if !residual.is_finite() {
+                return Solved::Stalled(q, residual);
+            }
+            if residual < self.tolerance {
+                let stuck = !states.iter().any(|s| matches!(s, CellState::Slip { .. }));
+                if corrected || !stuck {
+                    return Solved::Converged(q, s);
+                }
+                corrected = true;
+                self.correct_net_traction(&states, &mut q, &mut s, [&mut p, &mut kp, &mut z]);
+                continue;
+            }
+            if residual < best.0 {
+                best.0 = residual;
+                for (b, v) in best.1.iter_mut().zip(&q) {
+                    b.copy_from_slice(v);
+                }
+                since_best = 0;
+            } else {
+                since_best += 1;
+                if since_best >= 3 {
+                    return Solved::Stalled(best.1, best.0);
                 }
             }
-            project(&mut next);
+            // The fixed normal parts d0 on slip cells, and K d0.
+            let mut any_d0 = false;
+            for k in 0..n {
+                let v = match states[k] {
+                    CellState::Slip { n: nk, .. } => {
+                        let a = self.bound_kpa[k] - (q[0][k] * nk[0] + q[1][k] * nk[1]);
+                        any_d0 |= a != 0.0;
+                        [a * nk[0], a * nk[1]]
+                    }
+                    _ => [0.0, 0.0],
+                };
+                d0[0][k] = v[0];
+                d0[1][k] = v[1];
+            }
+            if any_d0 {
+                self.apply(&d0, &mut kd0);
+            } else {
+                kd0.iter_mut().for_each(|v| v.fill(0.0));
+            }
+            // Right-hand side, projected on the unknowns.
+            for k in 0..n {
+                let v = match states[k] {
+                    CellState::Free => [0.0, 0.0],
+                    CellState::Stick => [s[0][k] - kd0[0][k], s[1][k] - kd0[1][k]],
+                    CellState::Slip {
+                        n: nk,
+                        lambda_mm_per_kpa: lambda,
+                    } => {
+                        let t = [-nk[1], nk[0]];
+                        let qt = q[0][k] * t[0] + q[1][k] * t[1];
+                        // 1/(cα) = λ + 1/c.
+                        let b = -qt * (lambda + 1.0 / c) - (kd0[0][k] * t[0] + kd0[1][k] * t[1]);
+                        [b * t[0], b * t[1]]
+                    }
+                };
+                r[0][k] = v[0];
+                r[1][k] = v[1];
+            }
+            // Preconditioned conjugate gradients from v = 0.
+            x.iter_mut().for_each(|v| v.fill(0.0));
+            kx.iter_mut().for_each(|v| v.fill(0.0));
+            let precondition = |r: &Pair, z: &mut Pair| {
+                for k in 0..n {
+                    let v = match states[k] {
+                        CellState::Free => [0.0, 0.0],
+                        CellState::Stick => [r[0][k] / kxx, r[1][k] / kyy],
+                        CellState::Slip {
+                            n: nk,
+                            lambda_mm_per_kpa: lambda,
+                        } => {
+                            let t = [-nk[1], nk[0]];
+                            let diag = t[0] * t[0] * kxx + t[1] * t[1] * kyy + lambda;
+                            let rt = (r[0][k] * t[0] + r[1][k] * t[1]) / diag;
+                            [rt * t[0], rt * t[1]]
+                        }
+                    };
+                    z[0][k] = v[0];
+                    z[1][k] = v[1];
+                }
+            };
+            let dot = |a: &Pair, b: &Pair| -> f64 {
+                (0..2)
+                    .map(|c| a[c].iter().zip(&b[c]).map(|(u, v)| u * v).sum::<f64>())
+                    .sum()
+            };
+            let forcing = residual.sqrt().min(0.1);
+            let r0 = dot(&r, &r).sqrt();
+            precondition(&r, &mut z);
+            p.clone_from(&z);
+            let mut rz = dot(&r, &z);
+            for _ in 0..self.max_iterations {
+                if r0 == 0.0 {
+                    break;
+                }
+                self.apply(&p, &mut kp);
+                // A p = Π K p + Λ p, kept in r's slot after the step length is known.
+                let mut p_ap = 0.0;
+                for k in 0..n {
+                    let ap = project_state(states[k], [kp[0][k], kp[1][k]], [p[0][k], p[1][k]]);
+                    p_ap += p[0][k] * ap[0] + p[1][k] * ap[1];
+                }
+                if p_ap <= 0.0 || !p_ap.is_finite() {
+                    break;
+                }
+                let alpha = rz / p_ap;
+                for k in 0..n {
+                    let ap = project_state(states[k], [kp[0][k], kp[1][k]], [p[0][k], p[1][k]]);
+                    for c in 0..2 {
+                        x[c][k] += alpha * p[c][k];
+                        kx[c][k] += alpha * kp[c][k];
+                        r[c][k] -= alpha * ap[c];
+                    }
+                }
+                if dot(&r, &r).sqrt() <= forcing * r0 {
+                    break;
+                }
+                precondition(&r, &mut z);
+                let rz_next = dot(&r, &z);
+                let beta = rz_next / rz;
+                rz = rz_next;
+                for c in 0..2 {
+                    for (pk, zk) in p[c].iter_mut().zip(&z[c]) {
+                        *pk = zk + beta * *pk;
+                    }
+                }
+            }
+            // The step, kept feasible.
+            for c in 0..2 {
+                for k in 0..n {
+                    q[c][k] += d0[c][k] + x[c][k];
+                }
+            }
+            self.project(&mut q);
+            self.slip_increment(&q, &mut s);
+        }
+        Solved::Stalled(best.1, best.0)
+    }
+
+    /// Galerkin correction of a converged, fully stuck Newton iterate by a uniform traction on
+    /// the stick cells (a two-dimensional deflation space, as in deflated conjugate gradients,
+    /// Saad et al., SIAM J. Sci. Comput. 21, 2000): makes the slip increments sum to zero, so the
+    /// net force is exact. A Krylov polynomial fitted to one symmetry class of modes can amplify
+    /// round-off in another: a pure twist would otherwise carry a net force of 10⁻⁹ of its
+    /// tractions.
+    fn correct_net_traction(
+        &mut self,
+        states: &[CellState],
+        q: &mut Pair,
+        s: &mut Pair,
+        [e, ke_x, ke_y]: [&mut Pair; 3],
+    ) {
+        let stick: Vec<usize> = (0..states.len())
+            .filter(|&k| matches!(states[k], CellState::Stick))
+            .collect();
+        if stick.is_empty() {
+            return;
+        }
+        for (c, ke) in [(0, &mut *ke_x), (1, &mut *ke_y)] {
+            e.iter_mut().for_each(|v| v.fill(0.0));
+            for &k in &stick {
+                e[c][k] = 1.0;
+            }
+            self.apply(e, ke);
+        }
+        let sum = |f: &[f64]| stick.iter().map(|&k| f[k]).sum::<f64>();
+        let (a, b, c, d) = (sum(&ke_x[0]), sum(&ke_y[0]), sum(&ke_x[1]), sum(&ke_y[1]));
+        let (rx, ry) = (sum(&s[0]), sum(&s[1]));
+        let det = a * d - b * c;
+        let delta = [(rx * d - ry * b) / det, (a * ry - c * rx) / det];
+        if !(delta[0].is_finite() && delta[1].is_finite()) {
+            return;
+        }
+        for &k in &stick {
+            q[0][k] += delta[0];
+            q[1][k] += delta[1];
+        }
+        for comp in 0..2 {
+            for (k, v) in s[comp].iter_mut().enumerate() {
+                *v -= delta[0] * ke_x[comp][k] + delta[1] * ke_y[comp][k];
+            }
+        }
+        if stick
+            .iter()
+            .any(|&k| q[0][k].hypot(q[1][k]) > self.bound_kpa[k])
+        {
+            self.project(q);
+            self.slip_increment(q, s);
+        }
+    }
+
+    /// FISTA with adaptive restart (see [`TangentialMethod::Fista`]) from `x`.
+    fn fista(&mut self, mut x: Pair) -> Solved {
+        let n = self.bound_kpa.len();
+        let step = self.step_kpa_per_mm;
+        let mut y = x.clone();
+        let mut next = self.zeros();
+        let mut u = self.zeros();
+        let mut t: f64 = 1.0;
+        let mut residual = f64::INFINITY;
+        for _ in 0..self.max_iterations {
+            self.apply(&y, &mut u);
+            for c in 0..2 {
+                for k in 0..n {
+                    next[c][k] = y[c][k] - step * (u[c][k] - self.target_mm[c][k]);
+                }
+            }
+            self.project(&mut next);
             let mut step_sq = 0.0;
             let mut restart_dot = 0.0;
             for c in 0..2 {
@@ -446,18 +878,17 @@ impl Bem {
                     restart_dot += (y[c][k] - next[c][k]) * (next[c][k] - x[c][k]);
                 }
             }
-            residual = step_sq.sqrt() / scale;
+            residual = step_sq.sqrt() / self.scale_kpa;
             if !residual.is_finite() {
-                return Err(self.out_of_validity("non-finite traction in the tangential problem"));
+                return Solved::Stalled(next, residual);
             }
-            if residual < self.options.tangential_tolerance {
-                let u = conv.apply_pair(kernels, &next[0], &next[1]);
-                let s = [0, 1].map(|c| (0..n).map(|k| target_mm[c][k] - u[c][k]).collect());
-                return Ok((next, s));
+            if residual < self.tolerance {
+                self.slip_increment(&next, &mut u);
+                return Solved::Converged(next, u);
             }
             if restart_dot > 0.0 {
                 t = 1.0;
-                y = next.clone();
+                y.clone_from(&next);
             } else {
                 let t_next = 0.5 * (1.0 + (1.0 + 4.0 * t * t).sqrt());
                 let w = (t - 1.0) / t_next;
@@ -468,13 +899,26 @@ impl Bem {
                 }
                 t = t_next;
             }
-            x = next;
+            std::mem::swap(&mut x, &mut next);
         }
-        Err(ContactError::NotConverged {
-            solver: self.name,
-            iterations: self.options.max_iterations,
-            residual,
-        })
+        Solved::Stalled(x, residual)
+    }
+}
+
+/// The Newton operator's cell block applied to a direction: Π (K p) + Λ p, with `kp` = (K p)
+/// at the cell and `p` the direction there.
+fn project_state(state: CellState, kp: [f64; 2], p: [f64; 2]) -> [f64; 2] {
+    match state {
+        CellState::Free => [0.0, 0.0],
+        CellState::Stick => kp,
+        CellState::Slip {
+            n,
+            lambda_mm_per_kpa: lambda,
+        } => {
+            let t = [-n[1], n[0]];
+            let v = kp[0] * t[0] + kp[1] * t[1] + lambda * (p[0] * t[0] + p[1] * t[1]);
+            [v * t[0], v * t[1]]
+        }
     }
 }
 
@@ -498,12 +942,16 @@ fn embed(grid: &Grid, window: Rect, values: &[f64]) -> Vec<f64> {
     out
 }
 
-impl ContactSolver for Bem {
-    fn name(&self) -> &'static str {
-        self.name
-    }
-
-    fn solve(&mut self, input: &ContactInput) -> Result<Fields, ContactError> {
+impl Bem {
+    /// Solves one frame after `previous`; returns the fields and the history for the next frame
+    /// (`None`: no contact, forget the path).
+    fn solve_frame(
+        &mut self,
+        input: &ContactInput,
+        previous: Option<&History>,
+    ) -> Result<(Fields, Option<History>), ContactError> {
+        let start = Instant::now();
+        self.stats = BemStats::default();
         let grid = self.grid;
         let n = grid.len();
         let gap = &input.gap.gap_mm;
@@ -528,8 +976,7 @@ impl ContactSolver for Bem {
                 return Err(self.out_of_validity(format!("normal force {f} N")));
             }
             NormalControl::Force(f) if f <= 0.0 => {
-                self.history = None;
-                return Ok(Fields::zero(grid));
+                return Ok((Fields::zero(grid), None));
             }
             NormalControl::Force(f) => {
                 if !nearest_mm.is_finite() {
@@ -541,8 +988,7 @@ impl ContactSolver for Bem {
             }
         };
         if load_n.is_none() && nearest_mm >= 0.0 {
-            self.history = None;
-            return Ok(Fields::zero(grid));
+            return Ok((Fields::zero(grid), None));
         }
         if let Some(layer_mm) = self.layer.as_ref().map(|_| self.gel.thickness_mm)
             && layer_mm < 2.0 * grid.cell_mm
@@ -554,29 +1000,47 @@ impl ContactSolver for Bem {
         }
         let e_star = self.gel.effective_modulus_kpa();
         let da_n = grid.cell_area_mm2() * 1e-3;
-        // A frame that fails leaves the history of the last good frame in place.
-        let previous = self.history.clone();
 
         // Candidate region: rigid penetration at the expected approach, and the last contact.
-        let mut offset_mm = match (load_n, &previous) {
+        let mut offset_mm = match (load_n, previous) {
             (None, _) => 0.0,
             (Some(_), Some(h)) => h.offset_mm,
             (Some(_), None) => nearest_mm + grid.cell_mm,
         };
-        let mut core = bbox(&grid, |k| {
-            gap[k] < offset_mm || previous.as_ref().is_some_and(|h| h.pressure_kpa[k] > 0.0)
-        })
-        .unwrap_or_else(|| bbox(&grid, |k| gap[k] <= nearest_mm).expect("a finite gap"));
-        // On a half-space the surface only sinks under pressure, so the contact lies inside the
-        // rigid penetration; a layer bulges around its contact and gets a margin.
-        let mut grow = if self.layer.is_some() { 0.25 } else { 0.0 };
+        let last_contact = previous
+            .filter(|_| self.options.warm_start)
+            .and_then(|h| bbox(&grid, |k| h.pressure_kpa[k] > 0.0));
+        let (mut core, mut grow) = match last_contact {
+            // Along a trajectory the contact moves little between frames: the last contact with
+            // a margin (the escape test below enlarges the window if it does move further).
+            Some(last) => (last, 0.05),
+            None => (
+                bbox(&grid, |k| {
+                    gap[k] < offset_mm || previous.is_some_and(|h| h.pressure_kpa[k] > 0.0)
+                })
+                .unwrap_or_else(|| bbox(&grid, |k| gap[k] <= nearest_mm).expect("a finite gap")),
+                // On a half-space the surface only sinks under pressure, so the contact lies
+                // inside the rigid penetration; a layer bulges around its contact and gets a
+                // margin.
+                if self.layer.is_some() { 0.25 } else { 0.0 },
+            ),
+        };
         let full = self.spectra(grid.nx, grid.ny);
         let (window, pressure_kpa, uz_into_mm) = loop {
             let window = window_around(&grid, core, grow);
             let spectra = self.spectra(window.width(), window.height());
             let gap_w = crop(&grid, window, gap);
-            let mut initial = match &previous {
-                Some(h) => crop(&grid, window, &h.pressure_kpa),
+            // Warm start: the last two frames' pressures extrapolated linearly in time.
+            let mut initial = match previous.filter(|_| self.options.warm_start) {
+                Some(h) => {
+                    let mut p = crop(&grid, window, &h.pressure_kpa);
+                    if let Some(before) = &h.pressure_before_kpa {
+                        for (v, b) in p.iter_mut().zip(crop(&grid, window, before)) {
+                            *v = (2.0 * *v - b).max(0.0);
+                        }
+                    }
+                    p
+                }
                 None => vec![0.0; gap_w.len()],
             };
             // No pressure where the indenter has moved away from a cell altogether.
@@ -606,9 +1070,12 @@ impl ContactSolver for Bem {
                 initial.iter_mut().for_each(|p| *p *= load / total);
             }
             let normal = self.solve_normal(&spectra, &gap_w, initial, offset_mm, load_n)?;
+            self.stats.normal_convolutions += normal.convolutions;
+            self.stats.normal_windows += 1;
             offset_mm = normal.offset_mm;
             let pressure = embed(&grid, window, &normal.pressure_kpa);
-            let uz_into = full.conv.apply(&full.zz, &pressure);
+            let mut uz_into = vec![0.0; n];
+            full.conv.apply_into(&full.zz, &pressure, &mut uz_into);
             // Contact on the window's inner edge, or interpenetration outside the window,
             // means the window was too small.
             let depth_mm = (offset_mm - nearest_mm).max(grid.cell_mm * 1e-3);
@@ -657,6 +1124,8 @@ impl ContactSolver for Bem {
             )));
         }
 
+        self.stats.normal_s = start.elapsed().as_secs_f64();
+        let tangential_start = Instant::now();
         // Tangential problem on the contact's bounding box: tractions vanish outside the
         // contact and only displacements inside it are needed.
         let patch = bbox(&grid, |k| contact[k])
@@ -673,7 +1142,7 @@ impl ContactSolver for Bem {
             crop(&grid, patch, &all)
         });
         let target = [0, 1].map(|c| {
-            let prev = match &previous {
+            let prev = match previous {
                 Some(h) => crop(&grid, patch, &h.u_tangential_mm[c]),
                 None => vec![0.0; shift[c].len()],
             };
@@ -682,12 +1151,22 @@ impl ContactSolver for Bem {
                 .map(|(u, s)| u + s)
                 .collect::<Vec<f64>>()
         });
-        let initial = [0, 1].map(|c| match &previous {
-            Some(h) => crop(&grid, patch, &h.traction_kpa[c]),
+        let initial = [0, 1].map(|c| match previous.filter(|_| self.options.warm_start) {
+            Some(h) => {
+                let mut q = crop(&grid, patch, &h.traction_kpa[c]);
+                if let Some(before) = &h.traction_before_kpa {
+                    for (v, b) in q.iter_mut().zip(crop(&grid, patch, &before[c])) {
+                        *v = 2.0 * *v - b;
+                    }
+                }
+                q
+            }
             None => vec![0.0; bound.len()],
         });
-        let (traction_w, slip_increment) =
+        let (traction_w, slip_increment, convolutions) =
             self.solve_tangential(&spectra, &bound, [&target[0], &target[1]], initial)?;
+        self.stats.tangential_convolutions = convolutions;
+        self.stats.tangential_s = tangential_start.elapsed().as_secs_f64();
         let target_scale = target.iter().flatten().fold(0.0f64, |m, v| m.max(v.abs()));
         let slip_tol = 1e-6 * target_scale.max(1e-9 * grid.cell_mm);
         let slip_w: Vec<f64> = (0..bound.len())
@@ -703,29 +1182,67 @@ impl ContactSolver for Bem {
             .collect();
         let slip_full = embed(&grid, patch, &slip_w);
         let traction = [0, 1].map(|c| embed(&grid, patch, &traction_w[c]));
-        let [ux, uy] =
-            full.conv
-                .apply_pair([&full.xx, &full.yy, &full.xy], &traction[0], &traction[1]);
+        let (mut ux, mut uy) = (vec![0.0; n], vec![0.0; n]);
+        full.conv.apply_pair_into(
+            [&full.xx, &full.yy, &full.xy],
+            [&traction[0], &traction[1]],
+            [&mut ux, &mut uy],
+        );
 
-        let mut fields = Fields::zero(grid);
-        fields.uz_mm = uz_into_mm.iter().map(|u| -u).collect();
-        fields.ux_mm = ux.clone();
-        fields.uy_mm = uy.clone();
-        fields.pressure_kpa = pressure_kpa.clone();
-        fields.traction_x_kpa = traction[0].clone();
-        fields.traction_y_kpa = traction[1].clone();
-        fields.slip = (0..n).map(|k| contact[k] && slip_full[k] > 0.0).collect();
-        fields.contact = contact;
+        let mut uz_mm = uz_into_mm;
+        uz_mm.iter_mut().for_each(|u| *u = -*u);
+        let mut fields = Fields {
+            grid,
+            ux_mm: ux.clone(),
+            uy_mm: uy.clone(),
+            uz_mm,
+            pressure_kpa: pressure_kpa.clone(),
+            traction_x_kpa: traction[0].clone(),
+            traction_y_kpa: traction[1].clone(),
+            slip: (0..n).map(|k| contact[k] && slip_full[k] > 0.0).collect(),
+            contact,
+            force_n: [0.0; 3],
+            approach_offset_mm: if load_n.is_some() { offset_mm } else { 0.0 },
+        };
         fields.force_n = fields.total_force_n();
-        fields.approach_offset_mm = if load_n.is_some() { offset_mm } else { 0.0 };
+        self.stats.total_s = start.elapsed().as_secs_f64();
         let [tx, ty] = traction;
-        self.history = Some(History {
+        let history = History {
+            pressure_before_kpa: None,
+            traction_before_kpa: None,
             pressure_kpa,
             traction_kpa: [tx, ty],
             u_tangential_mm: [ux, uy],
             offset_mm,
-        });
-        Ok(fields)
+        };
+        Ok((fields, Some(history)))
+    }
+}
+
+impl ContactSolver for Bem {
+    fn name(&self) -> &'static str {
+        self.name
+    }
+
+    fn solve(&mut self, input: &ContactInput) -> Result<Fields, ContactError> {
+        let previous = self.history.take();
+        match self.solve_frame(input, previous.as_ref()) {
+            Ok((fields, history)) => {
+                self.history = history.map(|mut h| {
+                    if let Some(p) = previous {
+                        h.pressure_before_kpa = Some(p.pressure_kpa);
+                        h.traction_before_kpa = Some(p.traction_kpa);
+                    }
+                    h
+                });
+                Ok(fields)
+            }
+            Err(e) => {
+                // A frame that fails leaves the history of the last good frame in place.
+                self.history = previous;
+                Err(e)
+            }
+        }
     }
 
     fn reset(&mut self) {

@@ -1,5 +1,7 @@
 //! DC-FFT: exact linear (non-periodic) convolution of a traction field on an nx × ny window with
-//! influence coefficients, by zero-padding to 2nx × 2ny (Liu, Wang & Liu, Wear 243, 2000).
+//! influence coefficients, by zero-padding to at least 2nx × 2ny (Liu, Wang & Liu, Wear 243,
+//! 2000). The padded lengths are rounded up to even 5-smooth numbers (2^a 3^b 5^c), where the
+//! mixed-radix FFT is fastest; any length ≥ 2n gives the same linear convolution.
 //!
 //! DFT convention: forward X_k = Σ_n x_n e^(−2πi kn/N) along x (realfft, keeping the N/2 + 1
 //! non-negative frequencies) then along y (rustfft); the inverse is unnormalised and the 1/(N_x
@@ -7,9 +9,11 @@
 //! even under (x, y) → (−x, −y), so its spectrum is real and stored as `f64`.
 //!
 //! Rows and columns are transformed one by one in a fixed order, so results do not depend on
-//! the thread count.
+//! the thread count. The spectra and FFT scratch live in buffers kept with the plans, so a
+//! convolution allocates nothing once a window size has been used.
 
-use std::sync::Arc;
+use std::cell::RefCell;
+use std::sync::{Arc, Mutex};
 
 use rayon::prelude::*;
 use realfft::{ComplexToReal, RealFftPlanner, RealToComplex};
@@ -17,6 +21,41 @@ use rustfft::{Fft, FftPlanner, num_complex::Complex};
 
 /// Complex values per parallel task: small windows stay on one thread.
 const PARALLEL_MIN: usize = 1 << 15;
+
+thread_local! {
+    /// Scratch of the column transforms, per worker thread, grown on demand.
+    static COLUMN_SCRATCH: RefCell<Vec<Complex<f64>>> = const { RefCell::new(Vec::new()) };
+    /// Buffers of the inverse row transforms, per worker thread.
+    static ROW_BUFFERS: RefCell<RowBuffers> = const {
+        RefCell::new(RowBuffers {
+            row: Vec::new(),
+            line: Vec::new(),
+            scratch: Vec::new(),
+        })
+    };
+}
+
+/// A spectrum row, its real inverse transform and the transform's scratch.
+struct RowBuffers {
+    row: Vec<Complex<f64>>,
+    line: Vec<f64>,
+    scratch: Vec<Complex<f64>>,
+}
+
+/// The smallest even 5-smooth number ≥ `n`.
+fn smooth_length(n: usize) -> usize {
+    (n.max(2)..)
+        .find(|&m| {
+            let mut r = m;
+            for f in [2, 3, 5] {
+                while r % f == 0 {
+                    r /= f;
+                }
+            }
+            r == 1 && m % 2 == 0
+        })
+        .expect("5-smooth numbers are unbounded")
+}
 
 /// Zero-padded convolution plans for one window size.
 pub(crate) struct Conv {
@@ -31,6 +70,15 @@ pub(crate) struct Conv {
     c2r: Arc<dyn ComplexToReal<f64>>,
     fwd_y: Arc<dyn Fft<f64>>,
     inv_y: Arc<dyn Fft<f64>>,
+    buffers: Mutex<Buffers>,
+}
+
+/// Work space of one window size, reused by every convolution.
+struct Buffers {
+    spectra: [Spectrum; 2],
+    real_row: Vec<f64>,
+    complex_row: Vec<Complex<f64>>,
+    r2c_scratch: Vec<Complex<f64>>,
 }
 
 impl std::fmt::Debug for Conv {
@@ -40,33 +88,49 @@ impl std::fmt::Debug for Conv {
 }
 
 /// A spectrum: `hx` columns of `py` complex values, column-major (one y-transform per column).
-pub(crate) type Spectrum = Vec<Complex<f64>>;
+type Spectrum = Vec<Complex<f64>>;
 
 impl Conv {
     /// Plans for an `nx × ny` window.
     pub(crate) fn new(nx: usize, ny: usize) -> Conv {
-        let (px, py) = (2 * nx, 2 * ny);
+        let (px, py) = (smooth_length(2 * nx), smooth_length(2 * ny));
+        let hx = px / 2 + 1;
         let mut real = RealFftPlanner::<f64>::new();
         let mut complex = FftPlanner::<f64>::new();
+        let r2c = real.plan_fft_forward(px);
+        let c2r = real.plan_fft_inverse(px);
+        let buffers = Buffers {
+            spectra: [0, 1].map(|_| vec![Complex::new(0.0, 0.0); hx * py]),
+            real_row: r2c.make_input_vec(),
+            complex_row: r2c.make_output_vec(),
+            r2c_scratch: r2c.make_scratch_vec(),
+        };
         Conv {
             nx,
             ny,
             px,
             py,
-            hx: px / 2 + 1,
-            r2c: real.plan_fft_forward(px),
-            c2r: real.plan_fft_inverse(px),
+            hx,
+            r2c,
+            c2r,
             fwd_y: complex.plan_fft_forward(py),
             inv_y: complex.plan_fft_inverse(py),
+            buffers: Mutex::new(buffers),
         }
     }
 
-    /// Spectrum of a field of `sx × sy` values (row-major, `sx ≤ 2nx`, `sy ≤ 2ny`), zero-padded.
-    fn forward_sized(&self, src: &[f64], sx: usize, sy: usize) -> Spectrum {
-        let mut spec = vec![Complex::new(0.0, 0.0); self.hx * self.py];
-        let mut row = self.r2c.make_input_vec();
-        let mut out = self.r2c.make_output_vec();
-        let mut scratch = self.r2c.make_scratch_vec();
+    /// Spectrum of a field of `sx × sy` values (row-major, `sx ≤ px`, `sy ≤ py`), zero-padded,
+    /// into `spec`.
+    fn forward_into(
+        &self,
+        src: &[f64],
+        (sx, sy): (usize, usize),
+        spec: &mut [Complex<f64>],
+        row: &mut [f64],
+        out: &mut [Complex<f64>],
+        scratch: &mut [Complex<f64>],
+    ) {
+        spec.fill(Complex::new(0.0, 0.0));
         for j in 0..sy {
             let line = &src[j * sx..(j + 1) * sx];
             if line.iter().all(|&v| v == 0.0) {
@@ -75,14 +139,13 @@ impl Conv {
             row[..sx].copy_from_slice(line);
             row[sx..].fill(0.0);
             self.r2c
-                .process_with_scratch(&mut row, &mut out, &mut scratch)
+                .process_with_scratch(row, out, scratch)
                 .expect("realfft lengths match their plan");
             for (k, v) in out.iter().enumerate() {
                 spec[k * self.py + j] = *v;
             }
         }
-        self.columns(&mut spec, &self.fwd_y);
-        spec
+        self.columns(spec, &self.fwd_y);
     }
 
     /// Transforms every column along y; columns are independent, so running them on several
@@ -90,102 +153,142 @@ impl Conv {
     fn columns(&self, spec: &mut [Complex<f64>], plan: &Arc<dyn Fft<f64>>) {
         let scratch_len = plan.get_inplace_scratch_len();
         let per_task = (PARALLEL_MIN / self.py).max(1) * self.py;
-        spec.par_chunks_mut(per_task).for_each_init(
-            || vec![Complex::new(0.0, 0.0); scratch_len],
-            |scratch, block| {
-                for column in block.chunks_exact_mut(self.py) {
-                    plan.process_with_scratch(column, scratch);
+        spec.par_chunks_mut(per_task).for_each(|block| {
+            COLUMN_SCRATCH.with_borrow_mut(|scratch| {
+                if scratch.len() < scratch_len {
+                    scratch.resize(scratch_len, Complex::new(0.0, 0.0));
                 }
-            },
-        );
-    }
-
-    /// Spectrum of a window field (`nx × ny`, row-major).
-    pub(crate) fn forward(&self, src: &[f64]) -> Spectrum {
-        self.forward_sized(src, self.nx, self.ny)
+                plan.process_with_scratch(block, scratch);
+            });
+        });
     }
 
     /// Real spectrum of an influence kernel given as a function of the cell offset (di, dj),
-    /// |di| < nx, |dj| < ny, wrapped onto the padded grid (DC-FFT); the unused offsets ±nx, ±ny
-    /// get zero. The kernel must be even, so the imaginary part vanishes.
+    /// |di| < nx, |dj| < ny, wrapped onto the padded grid (DC-FFT); the other offsets get zero.
+    /// The kernel must be even, so the imaginary part vanishes.
     pub(crate) fn kernel_spectrum(&self, kernel: impl Fn(isize, isize) -> f64) -> Vec<f64> {
         let (px, py) = (self.px, self.py);
+        // The offset stored at padded index `i` of a length-`p` axis with `n` window cells.
+        let offset = |i: usize, n: usize, p: usize| {
+            if i < n {
+                Some(i as isize)
+            } else if i + n > p {
+                Some(i as isize - p as isize)
+            } else {
+                None
+            }
+        };
         let mut padded = vec![0.0; px * py];
         for j in 0..py {
-            let dj = if j < self.ny {
-                j as isize
-            } else if j > self.ny {
-                j as isize - py as isize
-            } else {
+            let Some(dj) = offset(j, self.ny, py) else {
                 continue;
             };
             for i in 0..px {
-                let di = if i < self.nx {
-                    i as isize
-                } else if i > self.nx {
-                    i as isize - px as isize
-                } else {
-                    continue;
-                };
-                padded[j * px + i] = kernel(di, dj);
+                if let Some(di) = offset(i, self.nx, px) {
+                    padded[j * px + i] = kernel(di, dj);
+                }
             }
         }
-        self.forward_sized(&padded, px, py)
-            .iter()
-            .map(|c| c.re)
-            .collect()
+        let mut spec = vec![Complex::new(0.0, 0.0); self.hx * py];
+        let mut row = self.r2c.make_input_vec();
+        let mut out = self.r2c.make_output_vec();
+        let mut scratch = self.r2c.make_scratch_vec();
+        self.forward_into(
+            &padded,
+            (px, py),
+            &mut spec,
+            &mut row,
+            &mut out,
+            &mut scratch,
+        );
+        spec.iter().map(|c| c.re).collect()
     }
 
-    /// Inverse transform, keeping the window (`nx × ny`, row-major, normalised).
-    pub(crate) fn inverse(&self, mut spec: Spectrum) -> Vec<f64> {
-        self.columns(&mut spec, &self.inv_y);
+    /// Inverse transform of `spec` (destroyed), keeping the window (`nx × ny`, row-major,
+    /// normalised), into `dst`. Rows are independent tasks, like the columns.
+    fn inverse_into(&self, spec: &mut [Complex<f64>], dst: &mut [f64]) {
+        self.columns(spec, &self.inv_y);
+        let spec = &*spec;
         let norm = 1.0 / (self.px * self.py) as f64;
-        let mut out = vec![0.0; self.nx * self.ny];
-        let mut row = self.c2r.make_input_vec();
-        let mut line = self.c2r.make_output_vec();
-        let mut scratch = self.c2r.make_scratch_vec();
-        for j in 0..self.ny {
-            for (k, v) in row.iter_mut().enumerate() {
-                *v = spec[k * self.py + j];
-            }
-            // A real signal has real DC and Nyquist terms; drop round-off there.
-            row[0].im = 0.0;
-            row[self.hx - 1].im = 0.0;
-            self.c2r
-                .process_with_scratch(&mut row, &mut line, &mut scratch)
-                .expect("realfft lengths match their plan");
-            for (o, v) in out[j * self.nx..(j + 1) * self.nx].iter_mut().zip(&line) {
-                *o = v * norm;
-            }
-        }
-        out
+        let rows_per_task = (PARALLEL_MIN / self.px).max(1);
+        let scratch_len = self.c2r.get_scratch_len();
+        dst.par_chunks_mut(rows_per_task * self.nx)
+            .enumerate()
+            .for_each(|(task, block)| {
+                ROW_BUFFERS.with_borrow_mut(|RowBuffers { row, line, scratch }| {
+                    row.resize(self.hx, Complex::new(0.0, 0.0));
+                    line.resize(self.px, 0.0);
+                    if scratch.len() < scratch_len {
+                        scratch.resize(scratch_len, Complex::new(0.0, 0.0));
+                    }
+                    for (r, out) in block.chunks_exact_mut(self.nx).enumerate() {
+                        let j = task * rows_per_task + r;
+                        for (k, v) in row.iter_mut().enumerate() {
+                            *v = spec[k * self.py + j];
+                        }
+                        // A real signal has real DC and Nyquist terms; drop round-off there.
+                        row[0].im = 0.0;
+                        row[self.hx - 1].im = 0.0;
+                        self.c2r
+                            .process_with_scratch(row, line, scratch)
+                            .expect("realfft lengths match their plan");
+                        for (o, v) in out.iter_mut().zip(line.iter()) {
+                            *o = v * norm;
+                        }
+                    }
+                });
+            });
     }
 
-    /// u = K ∗ p for one real kernel spectrum.
-    pub(crate) fn apply(&self, kernel: &[f64], src: &[f64]) -> Vec<f64> {
-        let mut spec = self.forward(src);
+    /// u = K ∗ p for one real kernel spectrum, into `dst` (`nx × ny`).
+    pub(crate) fn apply_into(&self, kernel: &[f64], src: &[f64], dst: &mut [f64]) {
+        let mut guard = self.buffers.lock().expect("convolution buffers");
+        let b = &mut *guard;
+        let [spec, _] = &mut b.spectra;
+        let size = (self.nx, self.ny);
+        self.forward_into(
+            src,
+            size,
+            spec,
+            &mut b.real_row,
+            &mut b.complex_row,
+            &mut b.r2c_scratch,
+        );
         for (s, k) in spec.iter_mut().zip(kernel) {
             *s *= *k;
         }
-        self.inverse(spec)
+        self.inverse_into(spec, dst);
     }
 
-    /// (u_x, u_y) = [[K_xx, K_xy], [K_xy, K_yy]] ∗ (q_x, q_y).
-    pub(crate) fn apply_pair(
+    /// (u_x, u_y) = [[K_xx, K_xy], [K_xy, K_yy]] ∗ (q_x, q_y), into `dst`.
+    pub(crate) fn apply_pair_into(
         &self,
         [kxx, kyy, kxy]: [&[f64]; 3],
-        qx: &[f64],
-        qy: &[f64],
-    ) -> [Vec<f64>; 2] {
-        let sx = self.forward(qx);
-        let sy = self.forward(qy);
-        let mut ux = Vec::with_capacity(sx.len());
-        let mut uy = Vec::with_capacity(sx.len());
-        for k in 0..sx.len() {
-            ux.push(sx[k] * kxx[k] + sy[k] * kxy[k]);
-            uy.push(sx[k] * kxy[k] + sy[k] * kyy[k]);
+        [qx, qy]: [&[f64]; 2],
+        [ux, uy]: [&mut [f64]; 2],
+    ) {
+        let mut guard = self.buffers.lock().expect("convolution buffers");
+        let b = &mut *guard;
+        let [sx, sy] = &mut b.spectra;
+        let size = (self.nx, self.ny);
+        for (q, spec) in [(qx, &mut *sx), (qy, &mut *sy)] {
+            self.forward_into(
+                q,
+                size,
+                spec,
+                &mut b.real_row,
+                &mut b.complex_row,
+                &mut b.r2c_scratch,
+            );
         }
-        [self.inverse(ux), self.inverse(uy)]
+        for k in 0..sx.len() {
+            let (a, c) = (sx[k], sy[k]);
+            sx[k] = a * kxx[k] + c * kxy[k];
+            sy[k] = a * kxy[k] + c * kyy[k];
+        }
+        for (spec, dst) in [(sx, ux), (sy, uy)] {
+            self.inverse_into(spec, dst);
+        }
     }
 }
 
@@ -194,13 +297,23 @@ mod tests {
     use super::*;
 
     #[test]
+    fn padded_lengths_are_even_and_5_smooth() {
+        assert_eq!(smooth_length(14), 16);
+        assert_eq!(smooth_length(272), 288);
+        assert_eq!(smooth_length(632), 640);
+        assert_eq!(smooth_length(792), 800);
+        assert_eq!(smooth_length(10), 10);
+    }
+
+    #[test]
     fn matches_direct_linear_convolution() {
         let (nx, ny) = (7, 5);
         let conv = Conv::new(nx, ny);
         let kernel = |di: isize, dj: isize| 1.0 / (1.0 + (di * di + 2 * dj * dj) as f64);
         let spectrum = conv.kernel_spectrum(kernel);
         let src: Vec<f64> = (0..nx * ny).map(|k| ((k * 37) % 11) as f64 - 4.0).collect();
-        let fast = conv.apply(&spectrum, &src);
+        let mut fast = vec![0.0; nx * ny];
+        conv.apply_into(&spectrum, &src, &mut fast);
         for j in 0..ny {
             for i in 0..nx {
                 let mut direct = 0.0;

@@ -25,7 +25,7 @@ pub mod validation;
 
 use sparsh_scene::{GapField, Gel, Grid, Pose, SolverKind};
 
-pub use bem::{Bem, BemOptions};
+pub use bem::{Bem, BemOptions, BemStats, TangentialMethod};
 pub use fem::{Fem, FemOptions, FemStats, NU_INCOMPRESSIBLE, NeoHookean};
 pub use geometric::Geometric;
 
