@@ -45,8 +45,8 @@ struct DeviceArgs {
     #[arg(long, default_value = "cpu", value_parser = clap::value_parser!(sparsh_ssl::device::DeviceKind))]
     device: sparsh_ssl::device::DeviceKind,
     /// Data-parallel over these devices of the --device kind (indices as `sparsh devices` lists
-    /// them, e.g. 0,1): every batch is split across them and their gradients averaged on the
-    /// first. Default: the kind's first device.
+    /// them, e.g. 0,1): pretrain splits every batch across them and averages their gradients on
+    /// the first; probe computes on the first. Default: the kind's first device.
     #[arg(long, value_name = "I,J,…")]
     devices: Option<String>,
 }
