@@ -84,6 +84,7 @@ pub fn pretrain(
 /// `label_fraction` replaces the recipe's `[log] probe_label_fraction`; `patches` adds the
 /// attentive probe on the raw input patches; `random_inits` probes that many random encoders
 /// (recipe seeds from the recipe's on) and ranks `encoder` among them.
+#[allow(clippy::too_many_arguments)]
 pub fn probe(
     config: &Path,
     data: &[PathBuf],

@@ -609,8 +609,11 @@ pub struct HostBatch {
 #[derive(Debug)]
 struct FrameCache {
     cap_bytes: usize,
-    held: Mutex<(usize, std::collections::HashMap<(usize, usize), Frame>)>,
+    held: Mutex<Held>,
 }
+
+/// Bytes held, and the frames by `(sequence, frame)`.
+type Held = (usize, std::collections::HashMap<(usize, usize), Frame>);
 
 impl FrameCache {
     fn new(cap_bytes: usize) -> Self {
@@ -620,9 +623,7 @@ impl FrameCache {
         }
     }
 
-    fn lock(
-        &self,
-    ) -> std::sync::MutexGuard<'_, (usize, std::collections::HashMap<(usize, usize), Frame>)> {
+    fn lock(&self) -> std::sync::MutexGuard<'_, Held> {
         // a panic while holding the lock leaves the map consistent (only inserts happen)
         self.held.lock().unwrap_or_else(|e| e.into_inner())
     }
