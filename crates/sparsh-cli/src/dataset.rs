@@ -454,6 +454,10 @@ pub fn bench(
 }
 
 /// Simulates one sequence, writes its frames, fields and background, then its record.
+///
+/// Frames are encoded and written on a thread of their own while the simulator goes on with
+/// the next ones (at most two frames wait between them), in frame order, so the files and the
+/// record are the same as writing each frame before simulating the next.
 fn write_sequence(
     dataset: &Dataset,
     seq: SequenceScene,
@@ -461,25 +465,96 @@ fn write_sequence(
     progress: &Progress,
     totals: &Mutex<StageTotals>,
 ) -> Result<()> {
-    let output = seq.scene.output.clone();
-    let mm_per_px = seq.scene.sensor.mm_per_px;
-    let tolerance = seq.scene.tolerance;
-    let mut sim = Simulator::on_device(seq.scene, gpu)?;
+    let SequenceScene {
+        sequence,
+        family,
+        split,
+        first_frame,
+        scene,
+    } = seq;
+    let about = SequenceAbout {
+        sequence,
+        family,
+        split: split.name(),
+        first_frame,
+        output: scene.output.clone(),
+        mm_per_px: scene.sensor.mm_per_px,
+        tolerance: scene.tolerance,
+    };
+    let mut sim = Simulator::on_device(scene, gpu)?;
+    let background = format!("backgrounds/{sequence:06}.png");
+    let background_sha = dataset.write_png(&background, &sim.background())?;
+    let (frames, received) = std::sync::mpsc::sync_channel::<Frame>(2);
+    let (mut part, local) = std::thread::scope(|scope| {
+        let writer = scope.spawn(|| write_frames(dataset, &about, &background, received, progress));
+        let mut failure = None;
+        while let Some(frame) = sim.next_frame() {
+            match frame {
+                // a closed channel means the writer failed: its error is reported below
+                Ok(frame) => {
+                    if frames.send(frame).is_err() {
+                        break;
+                    }
+                }
+                Err(e) => {
+                    failure = Some(e);
+                    break;
+                }
+            }
+        }
+        drop(frames);
+        let written = writer
+            .join()
+            .unwrap_or_else(|panic| std::panic::resume_unwind(panic));
+        match failure {
+            Some(e) => {
+                Err(anyhow::Error::new(e)
+                    .context(format!("sequence {sequence} ({})", about.family)))
+            }
+            None => written,
+        }
+    })?;
+    part.files.insert(background, background_sha);
+    dataset.write_part(&part)?;
+    let mut t = totals.lock().expect("no poisoned lock");
+    t.gap_s += local.gap_s;
+    t.contact_s += local.contact_s;
+    t.optics_s += local.optics_s;
+    t.writing_s += local.writing_s;
+    t.outside_validity.merge(&local.outside_validity);
+    Ok(())
+}
+
+/// What the writer needs to know of a sequence besides its frames.
+struct SequenceAbout {
+    sequence: usize,
+    family: String,
+    split: &'static str,
+    first_frame: usize,
+    output: OutputSpec,
+    mm_per_px: f64,
+    tolerance: f64,
+}
+
+/// The writer's side of [`write_sequence`]: each frame's PNG, fields and label as it arrives.
+/// Returns the sequence's record (without its background) and its stage times.
+fn write_frames(
+    dataset: &Dataset,
+    seq: &SequenceAbout,
+    background: &str,
+    frames: std::sync::mpsc::Receiver<Frame>,
+    progress: &Progress,
+) -> Result<(SequencePart, StageTotals)> {
+    let output = &seq.output;
     let mut part = SequencePart {
         sequence: seq.sequence,
         files: Default::default(),
         labels: Vec::new(),
     };
-    let background = format!("backgrounds/{:06}.png", seq.sequence);
-    part.files.insert(
-        background.clone(),
-        dataset.write_png(&background, &sim.background())?,
-    );
     let mut local = StageTotals::default();
     let mut previous: Option<Frame> = None;
     let mut forces: Vec<[f64; 3]> = Vec::new();
-    while let Some(frame) = sim.next_frame() {
-        let frame = frame.with_context(|| format!("sequence {} ({})", seq.sequence, seq.family))?;
+    for frame in frames {
         let t0 = Instant::now();
         let index = seq.first_frame + frame.target.index;
         let name = format!("{index:06}");
@@ -490,7 +565,7 @@ fn write_sequence(
         }
         if !output.fields.is_empty() {
             let rel = format!("fields/{name}.exr");
-            let bytes = exr_bytes(&frame.fields, &output)?;
+            let bytes = exr_bytes(&frame.fields, output)?;
             part.files
                 .insert(rel.clone(), dataset.write_file(&rel, &bytes)?);
         }
@@ -510,7 +585,7 @@ fn write_sequence(
             sequence: seq.sequence,
             frame_in_sequence: k,
             family: seq.family.clone(),
-            split: seq.split.name().into(),
+            split: seq.split.into(),
             time_s: frame.target.time_s,
             force_n: force,
             delta_force_n: std::array::from_fn(|c| force[c] - before[c]),
@@ -528,12 +603,14 @@ fn write_sequence(
                 Validity::Ok => None,
                 Validity::Outside { value, bound, .. } => Some([value, bound]),
             },
-            mm_per_px: Some(mm_per_px),
+            mm_per_px: Some(seq.mm_per_px),
             markers_px: frame.markers_px.clone(),
-            background: background.clone(),
+            background: background.to_string(),
         });
         if !frame.validity.is_ok() {
-            local.outside_validity.note(seq.sequence, &frame, tolerance);
+            local
+                .outside_validity
+                .note(seq.sequence, &frame, seq.tolerance);
         }
         local.gap_s += frame.timings.gap_s;
         local.contact_s += frame.timings.contact_s;
@@ -542,14 +619,7 @@ fn write_sequence(
         previous = Some(frame);
         progress.inc(1);
     }
-    dataset.write_part(&part)?;
-    let mut t = totals.lock().expect("no poisoned lock");
-    t.gap_s += local.gap_s;
-    t.contact_s += local.contact_s;
-    t.optics_s += local.optics_s;
-    t.writing_s += local.writing_s;
-    t.outside_validity.merge(&local.outside_validity);
-    Ok(())
+    Ok((part, local))
 }
 
 /// `sparsh verify DIR`: checks every checksum in the manifest of a complete dataset; on a

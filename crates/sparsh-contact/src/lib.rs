@@ -23,6 +23,7 @@ pub mod reference;
 pub mod study;
 pub mod validation;
 
+use rayon::prelude::*;
 use sparsh_scene::{GapField, Gel, Grid, Pose, SolverKind};
 
 pub use bem::{Bem, BemOptions, BemStats, TangentialMethod};
@@ -203,9 +204,14 @@ pub fn solver_for(kind: SolverKind, gel: &Gel, grid: Grid) -> Box<dyn ContactSol
 /// Rigid tangential displacement (mm, [dx, dy] per cell) of the indenter's surface point above
 /// each cell between two poses: the point at height `gap` (0 where nothing is above) is carried
 /// from `previous` to `current` as a rigid body. This is [`ContactInput::rigid_shift_mm`].
+/// The two rotations are built once (not per cell), and cells are independent tasks, so the
+/// bits do not depend on the thread count.
 pub fn rigid_shift_mm(previous: &Pose, current: &Pose, gap: &GapField) -> Vec<[f64; 2]> {
     let grid = gap.grid;
+    let (to_previous, from_current) = (previous.rotation(), current.rotation().inverse());
     (0..grid.len())
+        .into_par_iter()
+        .with_min_len(4096)
         .map(|k| {
             let (i, j) = (k % grid.nx, k / grid.nx);
             let z = if gap.gap_mm[k].is_finite() {
@@ -214,7 +220,8 @@ pub fn rigid_shift_mm(previous: &Pose, current: &Pose, gap: &GapField) -> Vec<[f
                 0.0
             };
             let point = glam::DVec3::new(grid.x_mm(i), grid.y_mm(j), z);
-            let moved = previous.apply(current.inverse_apply(point));
+            let local = from_current * (point - current.position_mm);
+            let moved = to_previous * local + previous.position_mm;
             [point.x - moved.x, point.y - moved.y]
         })
         .collect()

@@ -97,17 +97,43 @@ struct Solved {
     gap_s: f64,
 }
 
-/// Runs one scene's trajectory frame by frame.
-pub struct Simulator {
-    scene: Scene,
+/// One frame's mechanics, ready for its image: the fields over the camera's view and what the
+/// labels need of the whole gel.
+struct Contacted {
+    target: FrameTarget,
+    pose: Pose,
+    fields: Fields,
+    slip_state: SlipState,
+    contact_area_mm2: f64,
+    solver: SolverKind,
+    validity: Validity,
+    gap_s: f64,
+    contact_s: f64,
+}
+
+/// The path-dependent half of the pipeline: gap fields and contact solves, frame after frame.
+struct Mechanics {
     targets: Vec<FrameTarget>,
     rung: SolverKind,
     /// Where `rung` holds at the scene's tolerance.
     limits: RungLimits,
     solver: Box<dyn ContactSolver>,
-    renderer: ImageFormation,
     previous_pose: Option<Pose>,
     next: usize,
+}
+
+/// Runs one scene's trajectory frame by frame.
+///
+/// The contact of frame k + 1 depends on frame k's (stick/slip history) but frame k's image does
+/// not, so while frame k's image is formed the next frame's contact is already being solved
+/// (two tasks on the rayon pool). Each stage is deterministic, so the frames are the same bits
+/// as one stage after the other, whatever the thread count.
+pub struct Simulator {
+    scene: Scene,
+    mechanics: Mechanics,
+    renderer: ImageFormation,
+    /// The contact of the frame after the last one returned, solved ahead.
+    ahead: Option<Result<Contacted, SimError>>,
 }
 
 impl Simulator {
@@ -121,14 +147,17 @@ impl Simulator {
         let solver = solver_for(scene.solver, &scene.gel, scene.mechanics_grid());
         let renderer = ImageFormation::new(&scene.sensor, &scene.optics, scene.seed, gpu)?;
         Ok(Simulator {
-            targets: scene.frames(),
-            rung: scene.solver,
-            limits: RungLimits::of(SolverTable::builtin(), scene.solver, scene.tolerance),
+            mechanics: Mechanics {
+                targets: scene.frames(),
+                rung: scene.solver,
+                limits: RungLimits::of(SolverTable::builtin(), scene.solver, scene.tolerance),
+                solver,
+                previous_pose: None,
+                next: 0,
+            },
             scene,
-            solver,
             renderer,
-            previous_pose: None,
-            next: 0,
+            ahead: None,
         })
     }
 
@@ -139,7 +168,7 @@ impl Simulator {
 
     /// Number of frames in the trajectory.
     pub fn frame_count(&self) -> usize {
-        self.targets.len()
+        self.mechanics.targets.len()
     }
 
     /// The sensor's image with nothing touching.
@@ -147,11 +176,35 @@ impl Simulator {
         self.renderer.background()
     }
 
-    /// Simulates the next frame, or `None` after the last one.
+    /// Simulates the next frame, or `None` after the last one. A frame whose contact fails is
+    /// an error; the frames after it are still simulated by later calls.
     pub fn next_frame(&mut self) -> Option<Result<Frame, SimError>> {
+        let current = match self.ahead.take() {
+            Some(contacted) => contacted,
+            None => self.mechanics.next_contact(&self.scene)?,
+        };
+        let current = match current {
+            Ok(contacted) => contacted,
+            Err(e) => return Some(Err(e)),
+        };
+        let (scene, renderer, mechanics) = (&self.scene, &self.renderer, &mut self.mechanics);
+        let (frame, ahead) = rayon::join(
+            || form_image(scene, renderer, current),
+            || mechanics.next_contact(scene),
+        );
+        self.ahead = ahead;
+        Some(frame)
+    }
+}
+
+impl Mechanics {
+    /// The next frame's gap field and contact, checked against the rung's validity (and
+    /// escalated under `validity = "escalate"`), its fields cropped to the camera's view; `None`
+    /// after the last frame.
+    fn next_contact(&mut self, scene: &Scene) -> Option<Result<Contacted, SimError>> {
         let target = *self.targets.get(self.next)?;
         self.next += 1;
-        Some(self.simulate(target))
+        Some(self.contact(scene, target))
     }
 
     /// Casts the gap field at `target` and solves its contact with `solver`, after the frame
@@ -194,9 +247,9 @@ impl Simulator {
     /// Contact radius over gel thickness (the radius of a circle of the contact's area) and
     /// indentation depth over gel thickness (the deepest rigid penetration, with the approach
     /// found under load control) of a solved frame.
-    fn frame_ratios(&self, solved: &Solved) -> (f64, f64) {
+    fn frame_ratios(scene: &Scene, solved: &Solved) -> (f64, f64) {
         let (gap, fields) = (&solved.gap, &solved.fields);
-        let h = self.scene.gel.thickness_mm;
+        let h = scene.gel.thickness_mm;
         let a = (fields.contact_area_mm2() / std::f64::consts::PI).sqrt();
         let penetration = gap
             .gap_mm
@@ -209,8 +262,8 @@ impl Simulator {
         )
     }
 
-    fn validity(&self, solved: &Solved) -> Validity {
-        let (a_over_h, depth_over_h) = self.frame_ratios(solved);
+    fn validity(&self, scene: &Scene, solved: &Solved) -> Validity {
+        let (a_over_h, depth_over_h) = Mechanics::frame_ratios(scene, solved);
         self.limits.check(
             solved.fields.contact.contains(&true),
             a_over_h,
@@ -224,10 +277,11 @@ impl Simulator {
     /// at the top of the ladder.
     fn escalate(
         &mut self,
+        scene: &Scene,
         target: &FrameTarget,
         solved: &Solved,
     ) -> Result<Option<Solved>, SimError> {
-        let (a_over_h, depth_over_h) = self.frame_ratios(solved);
+        let (a_over_h, depth_over_h) = Mechanics::frame_ratios(scene, solved);
         let higher: Vec<SolverKind> = SolverKind::ALL
             .into_iter()
             .skip_while(|&k| k != self.rung)
@@ -236,116 +290,141 @@ impl Simulator {
         let Some(&top) = higher.last() else {
             return Ok(None);
         };
-        let limits_of = |k| RungLimits::of(SolverTable::builtin(), k, self.scene.tolerance);
+        let limits_of = |k| RungLimits::of(SolverTable::builtin(), k, scene.tolerance);
         let rung = higher
             .into_iter()
             .find(|&k| limits_of(k).check(true, a_over_h, depth_over_h).is_ok())
             .unwrap_or(top);
         let limits = limits_of(rung);
-        let mut solver = solver_for(rung, &self.scene.gel, self.scene.mechanics_grid());
+        let mut solver = solver_for(rung, &scene.gel, scene.mechanics_grid());
         let mut previous = None;
         for earlier in &self.targets[..target.index] {
             let solved =
-                Simulator::solve_contact(&self.scene, solver.as_mut(), earlier, previous.as_ref())?;
+                Mechanics::solve_contact(scene, solver.as_mut(), earlier, previous.as_ref())?;
             previous = Some(solved.pose);
         }
-        let solved =
-            Simulator::solve_contact(&self.scene, solver.as_mut(), target, previous.as_ref())?;
+        let solved = Mechanics::solve_contact(scene, solver.as_mut(), target, previous.as_ref())?;
         self.rung = rung;
         self.limits = limits;
         self.solver = solver;
         Ok(Some(solved))
     }
 
-    fn simulate(&mut self, target: FrameTarget) -> Result<Frame, SimError> {
+    fn contact(&mut self, scene: &Scene, target: FrameTarget) -> Result<Contacted, SimError> {
         let start = Instant::now();
-        let mut solved = Simulator::solve_contact(
-            &self.scene,
+        let mut solved = Mechanics::solve_contact(
+            scene,
             self.solver.as_mut(),
             &target,
             self.previous_pose.as_ref(),
         )?;
-        let mut validity = self.validity(&solved);
+        let mut validity = self.validity(scene, &solved);
         if !validity.is_ok() {
-            match self.scene.validity {
+            match scene.validity {
                 ValidityPolicy::Error => {
                     return Err(SimError::OutsideValidity {
                         frame: target.index,
                         rung: self.rung,
                         validity,
-                        tolerance: self.scene.tolerance,
+                        tolerance: scene.tolerance,
                     });
                 }
                 ValidityPolicy::Warn => {}
                 ValidityPolicy::Escalate => {
                     while !validity.is_ok()
-                        && let Some(higher) = self.escalate(&target, &solved)?
+                        && let Some(higher) = self.escalate(scene, &target, &solved)?
                     {
                         solved = higher;
-                        validity = self.validity(&solved);
+                        validity = self.validity(scene, &solved);
                     }
                 }
             }
         }
-        let contact_done = Instant::now();
         let Solved {
             fields,
             pose,
             gap_s,
             ..
         } = solved;
+        self.previous_pose = Some(pose);
         let slip_state = fields.slip_state();
         let contact_area_mm2 = fields.contact_area_mm2();
-        let fields = crop(
-            &fields,
-            self.scene.mechanics_margin_cells(),
-            self.scene.view_grid(),
-        );
-        let grid = fields.grid;
-        self.previous_pose = Some(pose);
-        let image_grid = self.scene.grid();
-        let render = |surface: &Surface| {
-            (
-                self.renderer.render(surface, target.index),
-                self.renderer.marker_centres_px(surface),
-            )
-        };
-        let (image, markers_px) = if image_grid == grid {
-            render(&Surface {
-                grid,
-                ux_mm: &fields.ux_mm,
-                uy_mm: &fields.uy_mm,
-                uz_mm: &fields.uz_mm,
-            })
-        } else {
-            let up = |v: &[f64]| upsample(v, grid, image_grid);
-            let (ux, uy, uz) = (up(&fields.ux_mm), up(&fields.uy_mm), up(&fields.uz_mm));
-            render(&Surface {
-                grid: image_grid,
-                ux_mm: &ux,
-                uy_mm: &uy,
-                uz_mm: &uz,
-            })
-        };
-        let image = image?;
-        let timings = StageTimes {
-            gap_s,
-            contact_s: (contact_done - start).as_secs_f64() - gap_s,
-            optics_s: contact_done.elapsed().as_secs_f64(),
-        };
-        Ok(Frame {
+        let fields = crop(&fields, scene.mechanics_margin_cells(), scene.view_grid());
+        Ok(Contacted {
             target,
             pose,
-            image,
-            markers_px,
             fields,
             slip_state,
             contact_area_mm2,
             solver: self.rung,
             validity,
-            timings,
+            gap_s,
+            contact_s: start.elapsed().as_secs_f64() - gap_s,
         })
     }
+}
+
+/// The image of a frame whose contact is solved: the deformed surface (upsampled to the
+/// image's grid when the mechanics is coarser) through the scene's image formation.
+fn form_image(
+    scene: &Scene,
+    renderer: &ImageFormation,
+    contacted: Contacted,
+) -> Result<Frame, SimError> {
+    let start = Instant::now();
+    let Contacted {
+        target,
+        pose,
+        fields,
+        slip_state,
+        contact_area_mm2,
+        solver,
+        validity,
+        gap_s,
+        contact_s,
+    } = contacted;
+    let grid = fields.grid;
+    let image_grid = scene.grid();
+    let render = |surface: &Surface| {
+        (
+            renderer.render(surface, target.index),
+            renderer.marker_centres_px(surface),
+        )
+    };
+    let (image, markers_px) = if image_grid == grid {
+        render(&Surface {
+            grid,
+            ux_mm: &fields.ux_mm,
+            uy_mm: &fields.uy_mm,
+            uz_mm: &fields.uz_mm,
+        })
+    } else {
+        let up = |v: &[f64]| upsample(v, grid, image_grid);
+        let (ux, uy, uz) = (up(&fields.ux_mm), up(&fields.uy_mm), up(&fields.uz_mm));
+        render(&Surface {
+            grid: image_grid,
+            ux_mm: &ux,
+            uy_mm: &uy,
+            uz_mm: &uz,
+        })
+    };
+    let image = image?;
+    Ok(Frame {
+        target,
+        pose,
+        image,
+        markers_px,
+        fields,
+        slip_state,
+        contact_area_mm2,
+        solver,
+        validity,
+        timings: StageTimes {
+            gap_s,
+            contact_s,
+            optics_s: start.elapsed().as_secs_f64(),
+        },
+    })
 }
 
 /// The fields over `view`, the central part of the mechanics grid `margin` cells in from each
