@@ -16,7 +16,7 @@ use std::time::Instant;
 use rayon::prelude::*;
 use sparsh_scene::{Gel, Grid};
 
-use crate::fft::Conv;
+use crate::fft::{Conv, smooth_length};
 use crate::kernels::{Component, LayerCorrection, halfspace_cell};
 use crate::{ContactError, ContactInput, ContactSolver, Fields, NormalControl};
 
@@ -189,8 +189,35 @@ pub struct Bem {
     layer: Option<LayerCorrection>,
     options: BemOptions,
     cache: HashMap<(usize, usize), Arc<Spectra>>,
+    /// Influence coefficients of every offset on the grid, `[zz, xx, yy, xy]` (made on first
+    /// use): the spreads' kernels.
+    grid_tables: Option<Arc<[Vec<f64>; 4]>>,
+    /// Kernel spectra of the spreads onto the whole grid, by padded size.
+    spread_cache: HashMap<(usize, usize), Arc<Spread>>,
     history: Option<History>,
     stats: BemStats,
+}
+
+/// Kernel spectra of a spread: tractions on a patch to displacements on the whole grid.
+#[derive(Debug)]
+struct Spread {
+    conv: Conv,
+    zz: Vec<f64>,
+    xx: Vec<f64>,
+    yy: Vec<f64>,
+    xy: Vec<f64>,
+}
+
+/// The padded length of a spread along an axis of `n` cells whose patch-to-grid offsets stay
+/// below `reach`: the first of n, 5n/4, 3n/2, 7n/4 and 2n that holds twice the reach (so a
+/// trajectory meets few sizes), made 5-smooth. A contact near the middle of the grid pads to
+/// about n + its width instead of the 2n of a whole-grid convolution.
+fn spread_length(n: usize, reach: usize) -> usize {
+    let rung = (4..=8)
+        .map(|k| (k * n).div_ceil(4))
+        .find(|&m| m >= 2 * reach)
+        .unwrap_or(2 * n);
+    smooth_length(rung)
 }
 
 /// Result of the normal problem on a window.
@@ -210,6 +237,8 @@ impl Bem {
             layer: None,
             options: BemOptions::default(),
             cache: HashMap::new(),
+            grid_tables: None,
+            spread_cache: HashMap::new(),
             history: None,
             stats: BemStats::default(),
         }
@@ -248,33 +277,71 @@ impl Bem {
         self.stats
     }
 
-    fn spectra(&mut self, nx: usize, ny: usize) -> Arc<Spectra> {
-        if let Some(s) = self.cache.get(&(nx, ny)) {
-            return s.clone();
-        }
-        let start = Instant::now();
+    /// Influence coefficients of component `c` for the offsets (di, dj) in [0, nx) × [0, ny),
+    /// row-major; the other signs follow from symmetry.
+    fn table(&self, c: Component, nx: usize, ny: usize) -> Vec<f64> {
         let (cell, e, nu) = (
             self.grid.cell_mm,
             self.gel.youngs_modulus_kpa,
             self.gel.poisson_ratio,
         );
         let layer = self.layer.as_ref();
-        // Coefficients for non-negative offsets; the others follow from symmetry.
-        let table = |c: Component| -> Vec<f64> {
-            (0..ny)
-                .into_par_iter()
-                .flat_map_iter(|dj| {
-                    (0..nx).map(move |di| {
-                        let (x, y) = (di as f64 * cell, dj as f64 * cell);
-                        let mut k = halfspace_cell(c, x, y, cell, e, nu);
-                        if let (Component::Zz, Some(layer)) = (c, layer) {
-                            k += layer.at(x.hypot(y)) * cell * cell;
-                        }
-                        k
-                    })
+        (0..ny)
+            .into_par_iter()
+            .flat_map_iter(|dj| {
+                (0..nx).map(move |di| {
+                    let (x, y) = (di as f64 * cell, dj as f64 * cell);
+                    let mut k = halfspace_cell(c, x, y, cell, e, nu);
+                    if let (Component::Zz, Some(layer)) = (c, layer) {
+                        k += layer.at(x.hypot(y)) * cell * cell;
+                    }
+                    k
                 })
-                .collect()
+            })
+            .collect()
+    }
+
+    /// The spread's kernel spectra for tractions on `patch` (cached by padded size).
+    fn spread(&mut self, patch: Rect) -> Arc<Spread> {
+        let (nx, ny) = (self.grid.nx, self.grid.ny);
+        let px = spread_length(nx, patch.i1.max(nx - patch.i0));
+        let py = spread_length(ny, patch.j1.max(ny - patch.j0));
+        if let Some(s) = self.spread_cache.get(&(px, py)) {
+            return s.clone();
+        }
+        let start = Instant::now();
+        let tables = match &self.grid_tables {
+            Some(t) => t.clone(),
+            None => {
+                let t = Arc::new(
+                    [Component::Zz, Component::Xx, Component::Yy, Component::Xy]
+                        .map(|c| self.table(c, nx, ny)),
+                );
+                self.grid_tables = Some(t.clone());
+                t
+            }
         };
+        let conv = Conv::padded((px / 2).min(nx), (py / 2).min(ny), px, py);
+        let at = |t: &[f64], di: isize, dj: isize| t[dj.unsigned_abs() * nx + di.unsigned_abs()];
+        let [tzz, txx, tyy, txy] = &*tables;
+        let spread = Arc::new(Spread {
+            zz: conv.kernel_spectrum(|di, dj| at(tzz, di, dj)),
+            xx: conv.kernel_spectrum(|di, dj| at(txx, di, dj)),
+            yy: conv.kernel_spectrum(|di, dj| at(tyy, di, dj)),
+            xy: conv.kernel_spectrum(|di, dj| (di.signum() * dj.signum()) as f64 * at(txy, di, dj)),
+            conv,
+        });
+        self.spread_cache.insert((px, py), spread.clone());
+        self.stats.kernel_s += start.elapsed().as_secs_f64();
+        spread
+    }
+
+    fn spectra(&mut self, nx: usize, ny: usize) -> Arc<Spectra> {
+        if let Some(s) = self.cache.get(&(nx, ny)) {
+            return s.clone();
+        }
+        let start = Instant::now();
+        let table = |c: Component| self.table(c, nx, ny);
         let conv = Conv::new(nx, ny);
         let even = |t: &[f64]| {
             conv.kernel_spectrum(|di, dj| t[dj.unsigned_abs() * nx + di.unsigned_abs()])
@@ -1025,7 +1092,6 @@ impl Bem {
                 if self.layer.is_some() { 0.25 } else { 0.0 },
             ),
         };
-        let full = self.spectra(grid.nx, grid.ny);
         let (window, pressure_kpa, uz_into_mm) = loop {
             let window = window_around(&grid, core, grow);
             let spectra = self.spectra(window.width(), window.height());
@@ -1075,7 +1141,14 @@ impl Bem {
             offset_mm = normal.offset_mm;
             let pressure = embed(&grid, window, &normal.pressure_kpa);
             let mut uz_into = vec![0.0; n];
-            full.conv.apply_into(&full.zz, &pressure, &mut uz_into);
+            let spread = self.spread(window);
+            spread.conv.spread_into(
+                &spread.zz,
+                &normal.pressure_kpa,
+                (window.width(), window.height()),
+                (window.i0, window.j0),
+                (&mut uz_into, grid.nx),
+            );
             // Contact on the window's inner edge, or interpenetration outside the window,
             // means the window was too small.
             let depth_mm = (offset_mm - nearest_mm).max(grid.cell_mm * 1e-3);
@@ -1183,10 +1256,13 @@ impl Bem {
         let slip_full = embed(&grid, patch, &slip_w);
         let traction = [0, 1].map(|c| embed(&grid, patch, &traction_w[c]));
         let (mut ux, mut uy) = (vec![0.0; n], vec![0.0; n]);
-        full.conv.apply_pair_into(
-            [&full.xx, &full.yy, &full.xy],
-            [&traction[0], &traction[1]],
-            [&mut ux, &mut uy],
+        let spread = self.spread(patch);
+        spread.conv.spread_pair_into(
+            [&spread.xx, &spread.yy, &spread.xy],
+            [&traction_w[0], &traction_w[1]],
+            (patch.width(), patch.height()),
+            (patch.i0, patch.j0),
+            ([&mut ux, &mut uy], grid.nx),
         );
 
         let mut uz_mm = uz_into_mm;

@@ -43,7 +43,7 @@ struct RowBuffers {
 }
 
 /// The smallest even 5-smooth number ≥ `n`.
-fn smooth_length(n: usize) -> usize {
+pub(crate) fn smooth_length(n: usize) -> usize {
     (n.max(2)..)
         .find(|&m| {
             let mut r = m;
@@ -93,7 +93,17 @@ type Spectrum = Vec<Complex<f64>>;
 impl Conv {
     /// Plans for an `nx × ny` window.
     pub(crate) fn new(nx: usize, ny: usize) -> Conv {
-        let (px, py) = (smooth_length(2 * nx), smooth_length(2 * ny));
+        Conv::padded(nx, ny, smooth_length(2 * nx), smooth_length(2 * ny))
+    }
+
+    /// Plans for kernels at offsets |di| < `nx`, |dj| < `ny` on a `px × py` padded grid
+    /// (`px ≥ 2nx`, `py ≥ 2ny`): a window of `nx × ny`, or the spread of a patch
+    /// ([`Conv::spread_pair_into`]).
+    pub(crate) fn padded(nx: usize, ny: usize, px: usize, py: usize) -> Conv {
+        assert!(
+            px >= 2 * nx && py >= 2 * ny,
+            "padding too small for the offsets"
+        );
         let hx = px / 2 + 1;
         let mut real = RealFftPlanner::<f64>::new();
         let mut complex = FftPlanner::<f64>::new();
@@ -207,12 +217,27 @@ impl Conv {
     /// Inverse transform of `spec` (destroyed), keeping the window (`nx × ny`, row-major,
     /// normalised), into `dst`. Rows are independent tasks, like the columns.
     fn inverse_into(&self, spec: &mut [Complex<f64>], dst: &mut [f64]) {
+        self.inverse_shifted_into(spec, dst, self.nx, (0, 0));
+    }
+
+    /// Inverse transform of `spec` (destroyed) into `dst`, rows of `width` values: value (i, j)
+    /// of `dst` is the padded result at ((i − i0) mod px, (j − j0) mod py), `(i0, j0)` =
+    /// `origin`, normalised.
+    fn inverse_shifted_into(
+        &self,
+        spec: &mut [Complex<f64>],
+        dst: &mut [f64],
+        width: usize,
+        (i0, j0): (usize, usize),
+    ) {
         self.columns(spec, &self.inv_y);
         let spec = &*spec;
         let norm = 1.0 / (self.px * self.py) as f64;
         let rows_per_task = (PARALLEL_MIN / self.px).max(1);
         let scratch_len = self.c2r.get_scratch_len();
-        dst.par_chunks_mut(rows_per_task * self.nx)
+        // The first `split` outputs of a row wrap around to the end of the padded line.
+        let split = i0.min(width);
+        dst.par_chunks_mut(rows_per_task * width)
             .enumerate()
             .for_each(|(task, block)| {
                 ROW_BUFFERS.with_borrow_mut(|RowBuffers { row, line, scratch }| {
@@ -221,8 +246,8 @@ impl Conv {
                     if scratch.len() < scratch_len {
                         scratch.resize(scratch_len, Complex::new(0.0, 0.0));
                     }
-                    for (r, out) in block.chunks_exact_mut(self.nx).enumerate() {
-                        let j = task * rows_per_task + r;
+                    for (r, out) in block.chunks_exact_mut(width).enumerate() {
+                        let j = (task * rows_per_task + r + self.py - j0 % self.py) % self.py;
                         for (k, v) in row.iter_mut().enumerate() {
                             *v = spec[k * self.py + j];
                         }
@@ -232,7 +257,11 @@ impl Conv {
                         self.c2r
                             .process_with_scratch(row, line, scratch)
                             .expect("realfft lengths match their plan");
-                        for (o, v) in out.iter_mut().zip(line.iter()) {
+                        let (wrapped, ahead) = out.split_at_mut(split);
+                        for (o, v) in wrapped.iter_mut().zip(&line[self.px - split..]) {
+                            *o = v * norm;
+                        }
+                        for (o, v) in ahead.iter_mut().zip(line.iter()) {
                             *o = v * norm;
                         }
                     }
@@ -258,6 +287,68 @@ impl Conv {
             *s *= *k;
         }
         self.inverse_into(spec, dst);
+    }
+
+    /// u = K ∗ p on a `width`-wide grid (`dst`) for a field `p` given on an `sx × sy` patch of
+    /// it whose first cell is `origin`: the patch is transformed at the padded grid's origin
+    /// and the result read back shifted, so the padding need only cover the offsets between
+    /// the patch and the grid (each below the plan's `nx × ny`), not twice the grid.
+    pub(crate) fn spread_into(
+        &self,
+        kernel: &[f64],
+        src: &[f64],
+        size: (usize, usize),
+        origin: (usize, usize),
+        (dst, width): (&mut [f64], usize),
+    ) {
+        let mut guard = self.buffers.lock().expect("convolution buffers");
+        let b = &mut *guard;
+        let [spec, _] = &mut b.spectra;
+        self.forward_into(
+            src,
+            size,
+            spec,
+            &mut b.real_row,
+            &mut b.complex_row,
+            &mut b.r2c_scratch,
+        );
+        for (s, k) in spec.iter_mut().zip(kernel) {
+            *s *= *k;
+        }
+        self.inverse_shifted_into(spec, dst, width, origin);
+    }
+
+    /// [`Conv::spread_into`] of the tangential pair: (u_x, u_y) = [[K_xx, K_xy], [K_xy, K_yy]] ∗
+    /// (q_x, q_y).
+    pub(crate) fn spread_pair_into(
+        &self,
+        [kxx, kyy, kxy]: [&[f64]; 3],
+        [qx, qy]: [&[f64]; 2],
+        size: (usize, usize),
+        origin: (usize, usize),
+        ([ux, uy], width): ([&mut [f64]; 2], usize),
+    ) {
+        let mut guard = self.buffers.lock().expect("convolution buffers");
+        let b = &mut *guard;
+        let [sx, sy] = &mut b.spectra;
+        for (q, spec) in [(qx, &mut *sx), (qy, &mut *sy)] {
+            self.forward_into(
+                q,
+                size,
+                spec,
+                &mut b.real_row,
+                &mut b.complex_row,
+                &mut b.r2c_scratch,
+            );
+        }
+        for k in 0..sx.len() {
+            let (a, c) = (sx[k], sy[k]);
+            sx[k] = a * kxx[k] + c * kxy[k];
+            sy[k] = a * kxy[k] + c * kyy[k];
+        }
+        for (spec, dst) in [(sx, ux), (sy, uy)] {
+            self.inverse_shifted_into(spec, dst, width, origin);
+        }
     }
 
     /// (u_x, u_y) = [[K_xx, K_xy], [K_xy, K_yy]] ∗ (q_x, q_y), into `dst`.
@@ -303,6 +394,64 @@ mod tests {
         assert_eq!(smooth_length(632), 640);
         assert_eq!(smooth_length(792), 800);
         assert_eq!(smooth_length(10), 10);
+    }
+
+    /// A patch anywhere on a larger grid, spread over the whole grid with the least padding,
+    /// equals the direct sum; so does the pair, component by component.
+    #[test]
+    fn spread_of_a_patch_matches_direct_sums() {
+        let (width, height) = (13, 9);
+        let (sx, sy, i0, j0) = (4, 3, 8, 1);
+        // offsets between the patch and the grid reach 11 along x and 7 along y
+        let conv = Conv::padded(12, 8, smooth_length(24), smooth_length(16));
+        let kernels: [fn(isize, isize) -> f64; 3] = [
+            |di, dj| 1.0 / (1.0 + (di * di + 2 * dj * dj) as f64),
+            |di, dj| 1.0 / (2.0 + (2 * di * di + dj * dj) as f64),
+            |di, dj| (di.signum() * dj.signum()) as f64 / (3.0 + (di * di + dj * dj) as f64),
+        ];
+        let spectra = kernels.map(|k| conv.kernel_spectrum(k));
+        let src: [Vec<f64>; 2] = [3, 5].map(|m| {
+            (0..sx * sy)
+                .map(|k| ((k * 37) % (m + 8)) as f64 - 4.0)
+                .collect()
+        });
+        let direct = |kernel: &dyn Fn(isize, isize) -> f64, field: &[f64], i: usize, j: usize| {
+            let mut sum = 0.0;
+            for l in 0..sy {
+                for k in 0..sx {
+                    let (di, dj) = (
+                        i as isize - (i0 + k) as isize,
+                        j as isize - (j0 + l) as isize,
+                    );
+                    sum += kernel(di, dj) * field[l * sx + k];
+                }
+            }
+            sum
+        };
+        let mut u = vec![0.0; width * height];
+        conv.spread_into(&spectra[0], &src[0], (sx, sy), (i0, j0), (&mut u, width));
+        let (mut ux, mut uy) = (vec![0.0; width * height], vec![0.0; width * height]);
+        conv.spread_pair_into(
+            [&spectra[0], &spectra[1], &spectra[2]],
+            [&src[0], &src[1]],
+            (sx, sy),
+            (i0, j0),
+            ([&mut ux, &mut uy], width),
+        );
+        let [kxx, kyy, kxy] = kernels;
+        for j in 0..height {
+            for i in 0..width {
+                let k = j * width + i;
+                assert!(
+                    (u[k] - direct(&kxx, &src[0], i, j)).abs() < 1e-12,
+                    "{i},{j}"
+                );
+                let want_x = direct(&kxx, &src[0], i, j) + direct(&kxy, &src[1], i, j);
+                let want_y = direct(&kxy, &src[0], i, j) + direct(&kyy, &src[1], i, j);
+                assert!((ux[k] - want_x).abs() < 1e-12, "x {i},{j}");
+                assert!((uy[k] - want_y).abs() < 1e-12, "y {i},{j}");
+            }
+        }
     }
 
     #[test]

@@ -6,6 +6,7 @@
 use std::time::Instant;
 
 use image::RgbImage;
+use rayon::prelude::*;
 use sparsh_contact::{
     ContactError, ContactInput, ContactSolver, Fields, NormalControl, SlipState, rigid_shift_mm,
     solver_for,
@@ -476,14 +477,16 @@ pub fn upsample(values: &[f64], coarse: Grid, fine: Grid) -> Vec<f64> {
     let xs = axis(fine.nx, coarse.nx, ratio);
     let ys = axis(fine.ny, coarse.ny, ratio);
     let at = |i: usize, j: usize| values[j * coarse.nx + i];
-    let mut out = Vec::with_capacity(fine.len());
-    for &(j0, j1, wy) in &ys {
-        for &(i0, i1, wx) in &xs {
-            let top = at(i0, j0) * (1.0 - wx) + at(i1, j0) * wx;
-            let bottom = at(i0, j1) * (1.0 - wx) + at(i1, j1) * wx;
-            out.push(top * (1.0 - wy) + bottom * wy);
-        }
-    }
+    let mut out = vec![0.0; fine.len()];
+    out.par_chunks_mut(fine.nx)
+        .zip(&ys)
+        .for_each(|(row, &(j0, j1, wy))| {
+            for (o, &(i0, i1, wx)) in row.iter_mut().zip(&xs) {
+                let top = at(i0, j0) * (1.0 - wx) + at(i1, j0) * wx;
+                let bottom = at(i0, j1) * (1.0 - wx) + at(i1, j1) * wx;
+                *o = top * (1.0 - wy) + bottom * wy;
+            }
+        });
     out
 }
 
