@@ -1,11 +1,12 @@
-"""PyTorch reference for the training-step benchmark (`cargo bench -p sparsh-ssl`).
+"""PyTorch reference for the training-step benchmark (`cargo bench -p sparsh-ssl`), which runs it
+right after burn's step of the same size.
 
-The same ViT as benches/train_step.rs: 6×96×96 input, patch 8 (144 tokens), width 192, 6 blocks,
-3 heads, MLP ratio 4, a linear pixel head, MSE, Adam, batch 32, on the CPU.
-    pip install torch numpy && python3 benches/torch_step.py [threads] [tiny|small]
-(small: width 384, 12 blocks, 6 heads, as the bench's `reference_small`).
-Prints seconds per step (median of 10 after 3 warm-up steps), images/s and the mean CPU time per
-step (steadier than wall time on a shared machine).
+The same step as benches/train_step.rs: 6×96×96 input, patch 8 (144 tokens), a ViT of MLP ratio 4
+(tiny: width 192, 6 blocks, 3 heads; small: 384, 12, 6; base: 768, 12, 12), a linear pixel head,
+MSE, Adam, batch 32, fp32 on the CPU.
+    pip install torch numpy && python3 benches/torch_step.py [threads] [tiny|small|base] [warmup timed]
+Prints seconds per step (median of `timed` steps, default 10, after `warmup`, default 3), images/s
+and the mean CPU time per step (steadier than wall time on a shared machine).
 """
 import sys
 import time
@@ -18,7 +19,8 @@ torch.set_num_threads(threads)
 torch.manual_seed(0)
 
 size = sys.argv[2] if len(sys.argv) > 2 else "tiny"
-D, DEPTH, HEADS = {"tiny": (192, 6, 3), "small": (384, 12, 6)}[size]
+D, DEPTH, HEADS = {"tiny": (192, 6, 3), "small": (384, 12, 6), "base": (768, 12, 12)}[size]
+WARMUP, TIMED = (int(sys.argv[3]), int(sys.argv[4])) if len(sys.argv) > 4 else (3, 10)
 C, H, P, B = 6, 96, 8, 32
 N = (H // P) ** 2
 
@@ -65,19 +67,19 @@ x = torch.rand(B, C, H, H)
 target = patchify(x)
 times = []
 cpu = 0.0
-for i in range(13):
+for i in range(WARMUP + TIMED):
     t0 = time.perf_counter()
     c0 = time.process_time()
     loss = ((model(x) - target) ** 2).mean()
     opt.zero_grad()
     loss.backward()
     opt.step()
-    if i >= 3:
+    if i >= WARMUP:
         times.append(time.perf_counter() - t0)
         cpu += time.process_time() - c0
 times.sort()
 step = times[len(times) // 2]
 print(
     f"torch {torch.__version__} {size} threads {threads}: {step:.3f} s/step, {B / step:.1f} images/s, "
-    f"{cpu / 10:.3f} CPU s/step"
+    f"{cpu / TIMED:.3f} CPU s/step"
 )

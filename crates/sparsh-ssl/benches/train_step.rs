@@ -1,11 +1,28 @@
-//! Training-step benchmark: the reference ViT of `benches/torch_step.py` (6×96×96, patch 8,
-//! width 192, 6 blocks, linear pixel head, MSE, Adam, batch 32), then images/s of one step of each
-//! CPU recipe's objective. `cargo bench -p sparsh-ssl [-- NAME …]` (release; names `reference`,
-//! `reference_small` (the same step with ViT-small: width 384, 12 blocks, 6 heads), `mae`,
-//! `dino`, `ijepa`, `vjepa`). Prints medians of 5 steps after 2 warm-up steps, and for the
-//! reference the mean CPU time per step.
+//! Training-step benchmark, in one run: the CPU's clock and peak FLOP/s, the reference step of
+//! `benches/torch_step.py` (6×96×96, patch 8, a ViT, linear pixel head, MSE, Adam, batch 32) at
+//! ViT-tiny (width 192, 6 blocks, 3 heads), ViT-small (384, 12, 6) and ViT-base (768, 12, 12)
+//! with burn — whole batch and 2 micro-batches, the trainer's path — and right after it the same
+//! step in PyTorch (`python3 benches/torch_step.py`, skipped with a note when python3 cannot
+//! import torch), then images/s of one training step of each CPU recipe (`*_tiny_cpu.toml`) and
+//! of the paper's ViT-base recipes (`*_base.toml`) at batch 4.
+//!
+//! `cargo bench -p sparsh-ssl --bench train_step [-- NAME …]` (release). Names: `reference`
+//! (all three sizes) or `tiny`, `small`, `base`; `recipes` (the four CPU recipes) or `mae`,
+//! `dino`, `ijepa`, `vjepa`; `base_recipes` (the five ViT-base recipes) or `mae_base`, `dino_base`,
+//! `dinov2_base`, `ijepa_base`, `vjepa_base`; `wgpu`, only when named: the four CPU recipes on the
+//! first wgpu adapter (one warm-up and one timed step each). No name runs everything but `wgpu`.
+//!
+//! FLOPs are counted as 2·M·N·K for every matrix product of the forward pass (the patch
+//! embedding, q/k/v, qkᵀ, attention · v, the output projection, the two MLP layers, the head;
+//! element-wise ops, norms and softmax not counted) and three times that for a training step
+//! (forward, and the two products of each backward), PyTorch's and burn's alike. The peak is
+//! measured on one core and multiplied by the rayon threads: the clock by a chain of dependent
+//! integer adds (one cycle each), and the FLOP/s by independent 256-bit fused multiply-adds,
+//! which on Zen 4 (two 256-bit FMA pipes; 512-bit FMAs run as two halves) approach
+//! clock × 32 per core.
 
 use std::path::Path;
+use std::process::Command;
 use std::time::Instant;
 
 use burn::module::Module;
@@ -13,15 +30,30 @@ use burn::nn::{Linear, LinearConfig};
 use burn::optim::AdamConfig;
 use burn::prelude::*;
 use sparsh_ssl::data::HostBatch;
+use sparsh_ssl::device::{DeviceKind, Devices};
 use sparsh_ssl::recipe::Recipe;
 use sparsh_ssl::rng::Rng;
 use sparsh_ssl::train::{Trainee, micro_batch_gradients, optimizer};
 use sparsh_ssl::vit::{Vit, VitConfig, patchify};
 
+/// Images per step of the reference step.
+const BATCH: usize = 32;
+/// Tokens of the reference input (12 × 12 patches of 8 px).
+const TOKENS: usize = 144;
+/// Values per patch (6 channels × 8 × 8).
+const PATCH_DIM: usize = 384;
+
 #[derive(Module, Debug)]
 struct Reference {
     vit: Vit,
     head: Linear,
+}
+
+/// The 1-, 5- and 15-minute load averages (the machine's other work).
+fn load_average() -> String {
+    std::fs::read_to_string("/proc/loadavg")
+        .map(|s| s.split_whitespace().take(3).collect::<Vec<_>>().join(" "))
+        .unwrap_or_else(|_| "unknown".into())
 }
 
 /// CPU seconds used by this process so far (user + system, from `/proc/self/stat`; 0 where
@@ -46,9 +78,132 @@ fn median(mut v: Vec<f64>) -> f64 {
     v[v.len() / 2]
 }
 
+/// Iterations per second of `work` on the calling thread, the best of 5 rounds of 5·10⁷
+/// iterations (the best is the least disturbed by other work on a shared machine).
+#[cfg(target_arch = "x86_64")]
+fn rate(work: fn(u64)) -> f64 {
+    const ITERS: u64 = 50_000_000;
+    (0..5)
+        .map(|_| {
+            let t0 = Instant::now();
+            work(ITERS);
+            ITERS as f64 / t0.elapsed().as_secs_f64()
+        })
+        .fold(0.0, f64::max)
+}
+
+/// `n` iterations of 8 dependent 64-bit adds (8 cycles per iteration: integer add has a latency
+/// of one cycle; the loop counter runs beside the chain).
+#[cfg(target_arch = "x86_64")]
+fn add_chain(n: u64) {
+    let mut x = 0u64;
+    // SAFETY: register-only arithmetic on the two operands, no memory or stack access
+    unsafe {
+        std::arch::asm!(
+            "2:",
+            "add {x}, 1", "add {x}, 1", "add {x}, 1", "add {x}, 1",
+            "add {x}, 1", "add {x}, 1", "add {x}, 1", "add {x}, 1",
+            "dec {n}",
+            "jnz 2b",
+            x = inout(reg) x,
+            n = inout(reg) n => _,
+            options(nomem, nostack),
+        );
+    }
+    std::hint::black_box(x);
+}
+
+/// `n` iterations of 10 independent 256-bit f32 FMAs (160 FLOPs; ten accumulators cover the
+/// FMA latency on two pipes). Only called where `fma` and `avx` are detected.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx,fma")]
+fn fma_block(n: u64) {
+    // SAFETY: register-only arithmetic (accumulators start and stay at zero), no memory access;
+    // the caller checked that the CPU has AVX and FMA
+    unsafe {
+        std::arch::asm!(
+            "vxorps ymm10, ymm10, ymm10",
+            "vxorps ymm11, ymm11, ymm11",
+            "vxorps ymm0, ymm0, ymm0", "vxorps ymm1, ymm1, ymm1", "vxorps ymm2, ymm2, ymm2",
+            "vxorps ymm3, ymm3, ymm3", "vxorps ymm4, ymm4, ymm4", "vxorps ymm5, ymm5, ymm5",
+            "vxorps ymm6, ymm6, ymm6", "vxorps ymm7, ymm7, ymm7", "vxorps ymm8, ymm8, ymm8",
+            "vxorps ymm9, ymm9, ymm9",
+            "2:",
+            "vfmadd231ps ymm0, ymm10, ymm11", "vfmadd231ps ymm1, ymm10, ymm11",
+            "vfmadd231ps ymm2, ymm10, ymm11", "vfmadd231ps ymm3, ymm10, ymm11",
+            "vfmadd231ps ymm4, ymm10, ymm11", "vfmadd231ps ymm5, ymm10, ymm11",
+            "vfmadd231ps ymm6, ymm10, ymm11", "vfmadd231ps ymm7, ymm10, ymm11",
+            "vfmadd231ps ymm8, ymm10, ymm11", "vfmadd231ps ymm9, ymm10, ymm11",
+            "dec {n}",
+            "jnz 2b",
+            n = inout(reg) n => _,
+            out("ymm0") _, out("ymm1") _, out("ymm2") _, out("ymm3") _, out("ymm4") _,
+            out("ymm5") _, out("ymm6") _, out("ymm7") _, out("ymm8") _, out("ymm9") _,
+            out("ymm10") _, out("ymm11") _,
+            options(nomem, nostack),
+        );
+    }
+}
+
+/// The measured clock (Hz) and f32 FMA FLOP/s of one core, times `threads` for the peak of all
+/// cores (one core is measured because a shared machine seldom leaves them all idle at once);
+/// `None` off x86-64 or without FMA.
+fn peak(threads: usize) -> Option<(f64, f64)> {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if !(std::arch::is_x86_feature_detected!("avx")
+            && std::arch::is_x86_feature_detected!("fma"))
+        {
+            return None;
+        }
+        let clock = 8.0 * rate(add_chain);
+        // SAFETY: AVX and FMA were detected above
+        let fma = |n| unsafe { fma_block(n) };
+        let flops = 160.0 * rate(fma) * threads as f64;
+        Some((clock, flops))
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        let _ = threads;
+        None
+    }
+}
+
+/// GFLOP/s of burn's f32 matrix product at 2048 × 2048 × 2048 (median of 5 after a warm-up).
+fn gemm_gflops(device: &Device) -> f64 {
+    let n: usize = 2048;
+    let a = Tensor::<2>::random([n, n], burn::tensor::Distribution::Default, device);
+    let b = Tensor::<2>::random([n, n], burn::tensor::Distribution::Default, device);
+    let _ = a.clone().matmul(b.clone()).into_data();
+    let times = (0..5)
+        .map(|_| {
+            let t0 = Instant::now();
+            let _ = a.clone().matmul(b.clone()).into_data();
+            t0.elapsed().as_secs_f64()
+        })
+        .collect();
+    2.0 * (n * n * n) as f64 / median(times) / 1e9
+}
+
+/// FLOPs of one reference training step at `width` / `depth` (see the module comment): per
+/// token, the patch embedding and head (2 · 2·384·D), and per block q/k/v, projection and MLP
+/// (24 D²) and attention (4 N D); times 32 images × 144 tokens; times 3.
+fn reference_flops([width, depth, _]: [usize; 3]) -> f64 {
+    let d = width as f64;
+    let per_token =
+        4.0 * PATCH_DIM as f64 * d + depth as f64 * (24.0 * d * d + 4.0 * TOKENS as f64 * d);
+    3.0 * per_token * (BATCH * TOKENS) as f64
+}
+
 /// The reference step of a ViT of `width` / `depth` / `heads` with the batch split into `parts`
-/// micro-batches ([`micro_batch_gradients`], the trainer's path; 1 = the plain whole-batch step).
-fn reference(device: &Device, [width, depth, heads]: [usize; 3], parts: usize) -> (f64, f64) {
+/// micro-batches ([`micro_batch_gradients`], the trainer's path; 1 = the plain whole-batch step):
+/// median s/step of `timed` steps after `warmup`, and the mean CPU s/step.
+fn reference(
+    device: &Device,
+    [width, depth, heads]: [usize; 3],
+    parts: usize,
+    (warmup, timed): (usize, usize),
+) -> (f64, f64) {
     let cfg = VitConfig::new([96, 96], 8)
         .with_embed_dim(width)
         .with_depth(depth)
@@ -59,14 +214,14 @@ fn reference(device: &Device, [width, depth, heads]: [usize; 3], parts: usize) -
     };
     let mut optim = AdamConfig::new().init();
     let x = Tensor::<5>::random(
-        [32, 1, 6, 96, 96],
+        [BATCH, 1, 6, 96, 96],
         burn::tensor::Distribution::Default,
         device,
     );
     let target = patchify(x.clone(), 8, 1);
     let mut times = Vec::new();
     let mut cpu = 0.0;
-    for i in 0..7 {
+    for i in 0..warmup + timed {
         let t0 = Instant::now();
         let c0 = cpu_seconds();
         let (grads, _, _) = micro_batch_gradients(
@@ -81,17 +236,65 @@ fn reference(device: &Device, [width, depth, heads]: [usize; 3], parts: usize) -
             },
         );
         model = optim.step(1e-4, model, grads);
-        if i >= 2 {
+        if i >= warmup {
             times.push(t0.elapsed().as_secs_f64());
             cpu += cpu_seconds() - c0;
         }
     }
-    (median(times), cpu / 5.0)
+    (median(times), cpu / timed as f64)
 }
 
-fn objective(name: &str, device: &Device) -> (f64, usize) {
+/// The same step in PyTorch on `threads` threads: (s/step, CPU s/step), `None` when the script
+/// fails (no torch).
+fn torch_reference(
+    size: &str,
+    threads: usize,
+    (warmup, timed): (usize, usize),
+) -> Option<(f64, f64)> {
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("benches/torch_step.py");
+    let out = Command::new("python3")
+        .arg(script)
+        .arg(threads.to_string())
+        .arg(size)
+        .args([warmup, timed].map(|v| v.to_string()))
+        .output()
+        .ok()?;
+    // "torch 2.x tiny threads 2: 0.505 s/step, 63.4 images/s, 0.980 CPU s/step"
+    let text = String::from_utf8_lossy(&out.stdout);
+    let (_, tail) = text.split_once(": ")?;
+    let mut numbers = tail
+        .split(", ")
+        .filter_map(|f| f.split_whitespace().next()?.parse::<f64>().ok());
+    let step = numbers.next()?;
+    let _images = numbers.next()?;
+    Some((step, numbers.next()?))
+}
+
+fn torch_version() -> Option<String> {
+    let out = Command::new("python3")
+        .args(["-c", "import torch; print(torch.__version__)"])
+        .output()
+        .ok()?;
+    out.status
+        .success()
+        .then(|| String::from_utf8_lossy(&out.stdout).trim().to_string())
+}
+
+/// Median s/step of `timed` steps of the recipe `file` (`assets/ssl/{file}.toml`) on `device`
+/// after `warmup` steps, at the batch size and micro-batches `resize` when given (else the
+/// recipe's); returns (s/step, batch, micro-batches).
+fn objective(
+    file: &str,
+    device: &Device,
+    resize: Option<(usize, usize)>,
+    (warmup, timed): (usize, usize),
+) -> (f64, usize, usize) {
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../assets/ssl");
-    let recipe = Recipe::load(&dir.join(format!("{name}_tiny_cpu.toml"))).unwrap();
+    let mut recipe = Recipe::load(&dir.join(format!("{file}.toml"))).unwrap();
+    if let Some((batch, parts)) = resize {
+        recipe.optim.batch_size = batch;
+        recipe.optim.micro_batches = parts;
+    }
     let enc = recipe.encoder_config().unwrap();
     let b = recipe.optim.batch_size;
     let shape = [
@@ -114,51 +317,150 @@ fn objective(name: &str, device: &Device) -> (f64, usize) {
     let mut model = Trainee::init(&recipe, device).unwrap();
     let mut optim = optimizer(&recipe);
     let mut times = Vec::new();
-    for i in 0..7 {
+    for i in 0..warmup + timed {
         batch.step = i;
         let t0 = Instant::now();
         model = model
             .train_step(&recipe, &mut optim, &batch, std::slice::from_ref(device))
             .0;
-        if i >= 2 {
+        if i >= warmup {
             times.push(t0.elapsed().as_secs_f64());
         }
     }
-    (median(times), b)
+    (median(times), b, recipe.optim.micro_batches)
 }
 
 fn main() {
-    // `cargo bench -p sparsh-ssl -- reference mae` runs only the named benchmarks
+    // `cargo bench -p sparsh-ssl -- base mae` runs only the named benchmarks
     let only: Vec<String> = std::env::args()
         .skip(1)
         .filter(|a| !a.starts_with("--"))
         .collect();
-    let wanted = |name: &str| only.is_empty() || only.iter().any(|o| o == name);
+    let wanted = |name: &str, group: &str| {
+        (only.is_empty() && name != "wgpu") || only.iter().any(|o| o == name || o == group)
+    };
+    let threads = rayon::current_num_threads();
     let device = Device::flex().autodiff();
-    // the reference ViT-tiny of torch_step.py, and ViT-small (width 384, 12 blocks, 6 heads)
-    for (name, size) in [
-        ("reference", [192, 6, 3]),
-        ("reference_small", [384, 12, 6]),
-    ] {
-        if !wanted(name) {
-            continue;
-        }
-        for parts in [1, 2] {
-            let (s, cpu) = reference(&device, size, parts);
+    println!(
+        "rayon threads: {threads}; load average at start: {}",
+        load_average()
+    );
+    let sizes = [
+        ("tiny", [192, 6, 3], (2, 5), (3, 10)),
+        ("small", [384, 12, 6], (2, 5), (2, 5)),
+        ("base", [768, 12, 12], (1, 3), (1, 3)),
+    ];
+    if sizes.iter().any(|s| wanted(s.0, "reference")) {
+        let peak = peak(threads);
+        let peak_flops = peak.map(|(clock, flops)| {
             println!(
-                "{name} (burn flex), {parts} micro-batch(es): {s:.3} s/step, {:.1} images/s, {cpu:.3} CPU s/step",
-                32.0 / s
+                "clock {:.2} GHz; FMA peak of {threads} cores {:.1} GFLOP/s ({:.1} FLOP per cycle \
+                 per core); burn f32 GEMM 2048³: {:.1} GFLOP/s",
+                clock / 1e9,
+                flops / 1e9,
+                flops / clock / threads as f64,
+                gemm_gflops(&Device::flex())
+            );
+            flops
+        });
+        let version = torch_version();
+        println!(
+            "torch: {}",
+            version
+                .as_deref()
+                .unwrap_or("python3 cannot import torch: no PyTorch column")
+        );
+        println!(
+            "| ViT | GFLOP/step | burn whole batch | burn 2 micro-batches | PyTorch | burn (2) / PyTorch | burn (2) of peak | PyTorch of peak |"
+        );
+        println!("|---|---|---|---|---|---|---|---|");
+        for (name, size, steps, torch_steps) in sizes {
+            if !wanted(name, "reference") {
+                continue;
+            }
+            let flops = reference_flops(size);
+            let cell = |s: f64, cpu: f64| {
+                format!(
+                    "{s:.3} s/step, {:.1} images/s ({cpu:.2} CPU s)",
+                    BATCH as f64 / s
+                )
+            };
+            let share = |s: f64| {
+                peak_flops.map_or("–".into(), |p| format!("{:.0} %", 100.0 * flops / s / p))
+            };
+            let (whole, whole_cpu) = reference(&device, size, 1, steps);
+            let (split, split_cpu) = reference(&device, size, 2, steps);
+            let torch = version
+                .as_ref()
+                .and_then(|_| torch_reference(name, threads, torch_steps));
+            let (torch_cell, ratio, torch_share) = torch
+                .map_or(("–".into(), "–".into(), "–".into()), |(s, cpu)| {
+                    (cell(s, cpu), format!("{:.2}", s / split), share(s))
+                });
+            println!(
+                "| {name} ({}×{}) | {:.0} | {} | {} | {torch_cell} | {ratio} | {} | {torch_share} |",
+                size[0],
+                size[1],
+                flops / 1e9,
+                cell(whole, whole_cpu),
+                cell(split, split_cpu),
+                share(split),
             );
         }
-    }
-    for name in ["mae", "dino", "ijepa", "vjepa"]
-        .into_iter()
-        .filter(|n| wanted(n))
-    {
-        let (s, b) = objective(name, &device);
+        // a GPU's images/s estimated the same way: utilisation × peak FLOP/s / FLOPs per image
+        let base = reference_flops(sizes[2].1) / BATCH as f64;
         println!(
-            "{name}_tiny_cpu: {s:.3} s/step at batch {b}, {:.1} images/s",
-            b as f64 / s
+            "estimate, not a measurement: an A100 at 40 % of its 312 TFLOP/s bf16 peak would take \
+             the base step at 0.4 × 312e12 / {:.1e} = {:.0} images/s",
+            base,
+            0.4 * 312e12 / base
         );
     }
+    let recipes = ["mae", "dino", "ijepa", "vjepa"];
+    let cpu_recipes: Vec<&str> = recipes
+        .into_iter()
+        .filter(|n| wanted(n, "recipes"))
+        .collect();
+    let base_recipes: Vec<&str> = ["mae", "dino", "dinov2", "ijepa", "vjepa"]
+        .into_iter()
+        .filter(|n| wanted(&format!("{n}_base"), "base_recipes"))
+        .collect();
+    if !cpu_recipes.is_empty() || !base_recipes.is_empty() {
+        println!("| recipe | device | batch | micro-batches | s/step | images/s |");
+        println!("|---|---|---|---|---|---|");
+    }
+    let row = |file: &str, device: &str, (s, b, parts): (f64, usize, usize)| {
+        println!(
+            "| `{file}` | {device} | {b} | {parts} | {s:.3} | {:.1} |",
+            b as f64 / s
+        );
+    };
+    for name in cpu_recipes {
+        let file = format!("{name}_tiny_cpu");
+        row(&file, "cpu", objective(&file, &device, None, (2, 5)));
+    }
+    for name in base_recipes {
+        // batch 4 (the paper's 100–150 would take minutes a step here); DINO's batch statistics
+        // keep it whole, the others run the CPU recipes' two micro-batches
+        let parts = if name.starts_with("dino") { 1 } else { 2 };
+        let file = format!("{name}_base");
+        row(
+            &file,
+            "cpu",
+            objective(&file, &device, Some((4, parts)), (1, 2)),
+        );
+    }
+    if wanted("wgpu", "wgpu") {
+        match Devices::choose(DeviceKind::Wgpu, &[]) {
+            Ok(d) => {
+                let gpu = d.main().clone().autodiff();
+                for name in recipes {
+                    let file = format!("{name}_tiny_cpu");
+                    row(&file, &d.names[0], objective(&file, &gpu, None, (1, 1)));
+                }
+            }
+            Err(e) => println!("wgpu: {e}"),
+        }
+    }
+    println!("load average at end: {}", load_average());
 }

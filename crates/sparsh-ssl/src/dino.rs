@@ -5,9 +5,10 @@
 use burn::module::Param;
 use burn::nn::{Linear, LinearConfig};
 use burn::prelude::*;
-use burn::tensor::activation::{gelu, log_softmax, softmax};
+use burn::tensor::activation::{log_softmax, softmax};
 
 use crate::ema::ema_update;
+use crate::kernels::gelu;
 use crate::masks::DinoViews;
 use crate::vit::{Vit, VitConfig, VitOutput, batch_standardize, gather_tokens, index_tensor};
 

@@ -171,9 +171,10 @@ impl FrozenEncoder {
 /// row-major `[batch, dim]` pooled, else `[batch, tokens, dim]`.
 ///
 /// The batch is split into one part per thread of the rayon pool, encoded in parallel: burn's
-/// CPU backend runs element-wise ops (layer norm, GELU, residual adds) on the calling thread, so
-/// this is what puts every core to work outside the matrix products. A sample's features do not
-/// depend on the split beyond float rounding.
+/// CPU backend runs element-wise ops (residual adds, softmax, copies) on the calling thread, so
+/// this is what puts every core to work outside the matrix products and this crate's own
+/// GELU and layer-norm kernels ([`crate::kernels`]). A sample's features do not depend on the
+/// split beyond float rounding.
 pub fn encode(vit: &Vit, x: Tensor<5>, pool: Pool) -> Vec<f32> {
     let b = x.dims()[0];
     let size = b.div_ceil(rayon::current_num_threads().clamp(1, b.max(1)));

@@ -10,6 +10,7 @@
 //! - [`weights`]: safetensors with the official checkpoints' key names.
 //! - [`embed`]: a trained encoder as a frozen feature extractor of tactile frames.
 //! - [`recipe`], [`train`], [`probe`]: training recipes, the training loop, the online force probe.
+//! - [`kernels`]: the exact GELU and layer norm, one vectorised pass each way on the CPU backend.
 //! - [`device`]: the CPU, wgpu or CUDA devices a run computes on (data-parallel over several).
 
 pub mod data;
@@ -18,6 +19,7 @@ pub mod dino;
 pub mod ema;
 pub mod embed;
 pub mod jepa;
+pub mod kernels;
 pub mod mae;
 pub mod masks;
 pub mod pos_embed;

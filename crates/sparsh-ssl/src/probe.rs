@@ -7,12 +7,12 @@ use burn::module::{Module, Param};
 use burn::nn::{LayerNorm, LayerNormConfig, Linear, LinearConfig};
 use burn::optim::{AdamWConfig, GradientsParams};
 use burn::prelude::*;
-use burn::tensor::activation::gelu;
 use burn::tensor::module::attention;
 use burn::tensor::ops::AttentionModuleOptions;
 
 use crate::Error;
 use crate::data::{AugmentConfig, HostBatch, Sampler};
+use crate::kernels::gelu;
 use crate::rng::Rng;
 use crate::vit::{LN_EPS, Vit};
 

@@ -11,11 +11,11 @@
 use burn::module::Param;
 use burn::nn::{LayerNorm, LayerNormConfig, Linear, LinearConfig};
 use burn::prelude::*;
-use burn::tensor::activation::gelu;
 use burn::tensor::module::attention;
 use burn::tensor::ops::AttentionModuleOptions;
 
 use crate::Error;
+use crate::kernels::{gelu, layer_norm};
 use crate::pos_embed::sincos_tensor;
 
 /// Layer-norm epsilon of the official encoder (DINOv2-style blocks).
@@ -358,11 +358,16 @@ impl Block {
             Some(g) => y * g.val().unsqueeze::<3>(),
             None => y,
         };
-        let x = x.clone() + scaled(self.attn.forward(self.norm1.forward(x)), &self.ls1);
-        let y = self
-            .mlp
-            .fc2
-            .forward(gelu(self.mlp.fc1.forward(self.norm2.forward(x.clone()))));
+        let x = x.clone()
+            + scaled(
+                self.attn.forward(layer_norm(x, &self.norm1, LN_EPS)),
+                &self.ls1,
+            );
+        let y = self.mlp.fc2.forward(gelu(self.mlp.fc1.forward(layer_norm(
+            x.clone(),
+            &self.norm2,
+            LN_EPS,
+        ))));
         x + scaled(y, &self.ls2)
     }
 }
@@ -456,7 +461,7 @@ impl Vit {
             // a block hooked twice (shallow encoders) is read twice
             for _ in hooks.iter().filter(|&&h| h == i) {
                 let n = x.dims()[1];
-                out.push(self.norm.forward(x.clone()).narrow(1, r, n - r));
+                out.push(layer_norm(x.clone(), &self.norm, LN_EPS).narrow(1, r, n - r));
             }
         }
         out
@@ -473,7 +478,7 @@ impl Vit {
         for block in &self.blocks {
             x = block.forward(x);
         }
-        let x = self.norm.forward(x);
+        let x = layer_norm(x, &self.norm, LN_EPS);
         let n = x.dims()[1];
         VitOutput {
             registers: (r > 0).then(|| x.clone().narrow(1, 0, r)),
