@@ -271,11 +271,13 @@ impl OutsideValidity {
 }
 
 impl StageTotals {
-    /// Each stage's share of the total, in percent: [gap, contact, optics, writing].
-    pub fn shares_pct(&self) -> [f64; 4] {
+    /// Each stage's time per frame in milliseconds: [gap, contact, optics, writing]. The stages
+    /// overlap (a frame's image forms while the next frame's contact is solved, and frames are
+    /// written on a thread of their own), so the wall time per frame is less than their sum;
+    /// the slowest path bounds it.
+    pub fn ms_per_frame(&self, frames: usize) -> [f64; 4] {
         let parts = [self.gap_s, self.contact_s, self.optics_s, self.writing_s];
-        let sum = parts.iter().sum::<f64>().max(f64::MIN_POSITIVE);
-        parts.map(|v| 100.0 * v / sum)
+        parts.map(|v| 1e3 * v / frames.max(1) as f64)
     }
 }
 
@@ -352,9 +354,9 @@ pub fn generate(scene_path: &Path, out: &Path, options: GenerateOptions) -> Resu
     let wall_s = start.elapsed().as_secs_f64();
     let stages = *totals.lock().expect("no poisoned lock");
     if frames > 0 {
-        let [gap, contact, optics, writing] = stages.shares_pct();
+        let [gap, contact, optics, writing] = stages.ms_per_frame(frames);
         eprintln!(
-            "{frames} frames in {wall_s:.2} s: {:.1} frames/s (gap {gap:.0} %, contact {contact:.0} %, optics {optics:.0} %, writing {writing:.0} %)",
+            "{frames} frames in {wall_s:.2} s: {:.1} frames/s (per frame: gap {gap:.1} ms, contact {contact:.1} ms, optics {optics:.1} ms, writing {writing:.1} ms; the stages overlap)",
             frames as f64 / wall_s,
         );
     }
@@ -410,8 +412,8 @@ fn damaged_sequences(dataset: &Dataset, sequences: &[usize], out: &Path) -> Resu
 }
 
 /// `sparsh bench SCENE`: generates the scene once per solver rung and mechanics stride into a
-/// scratch directory and prints frames/s, the ratio to the first run, and each stage's share of
-/// the time.
+/// scratch directory and prints frames/s, the ratio to the first run, and each stage's time per
+/// frame.
 pub fn bench(
     scene_path: &Path,
     solvers: &[SolverKind],
@@ -419,7 +421,7 @@ pub fn bench(
     device: DeviceArg,
 ) -> Result<()> {
     println!(
-        "| solver | stride | frames | frames/s | × first | gap % | contact % | optics % | writing % |"
+        "| solver | stride | frames | frames/s | × first | gap ms | contact ms | optics ms | writing ms |"
     );
     println!("|---|---|---|---|---|---|---|---|---|");
     let mut first_fps = None;
@@ -442,9 +444,9 @@ pub fn bench(
         )?;
         let fps = report.frames as f64 / report.wall_s;
         let base = *first_fps.get_or_insert(fps);
-        let [gap, contact, optics, writing] = report.stages.shares_pct();
+        let [gap, contact, optics, writing] = report.stages.ms_per_frame(report.frames);
         println!(
-            "| {} | {stride} | {} | {fps:.1} | {:.2} | {gap:.0} | {contact:.0} | {optics:.0} | {writing:.0} |",
+            "| {} | {stride} | {} | {fps:.1} | {:.2} | {gap:.2} | {contact:.2} | {optics:.2} | {writing:.2} |",
             solver.name(),
             report.frames,
             fps / base,
@@ -457,7 +459,8 @@ pub fn bench(
 ///
 /// Frames are encoded and written on a thread of their own while the simulator goes on with
 /// the next ones (at most two frames wait between them), in frame order, so the files and the
-/// record are the same as writing each frame before simulating the next.
+/// record are the same as writing each frame before simulating the next. The writer never uses
+/// the rayon pool: a pool worker simulating a sequence blocks when its writer falls behind.
 fn write_sequence(
     dataset: &Dataset,
     seq: SequenceScene,

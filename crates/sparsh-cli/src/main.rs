@@ -111,7 +111,8 @@ enum Command {
         #[arg(long, value_enum, default_value = "cpu")]
         device: dataset::DeviceArg,
     },
-    /// Measure the whole pipeline's throughput (frames/s and each stage's share) per solver rung.
+    /// Measure the whole pipeline's throughput (frames/s and each stage's time per frame) per
+    /// solver rung.
     Bench {
         /// Scene file (TOML); its output settings decide what is written.
         scene: PathBuf,

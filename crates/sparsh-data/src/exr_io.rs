@@ -7,7 +7,6 @@ use exr::block::chunk::{Chunk, CompressedBlock, CompressedScanLineBlock};
 use exr::block::writer::ChunksWriter;
 use exr::image::write::layers::WritableLayers;
 use exr::prelude::*;
-use rayon::prelude::*;
 use sparsh_scene::Precision;
 
 use crate::DataError;
@@ -23,13 +22,14 @@ const ZIP_LEVEL: u32 = 1;
 /// memory: one layer named `fields`, channels sorted by name, ZIP compression in blocks of 16
 /// scan lines stored in increasing order.
 ///
-/// The blocks are compressed here rather than by exr's writer, on the rayon pool and with
-/// zlib-rs: exr compresses with miniz at level 4 and, in parallel, builds a thread pool of every
-/// core for each file. Each block is OpenEXR's ZIP: the samples of each line, channel after
-/// channel, in little-endian bytes; the bytes split into their even and odd halves; each byte
-/// replaced by its difference from the one before plus 128; zlib (OpenEXR file format, "ZIP
-/// compression"). A block that does not shrink is stored raw, as the format requires. Blocks are
-/// independent, so the bytes do not depend on the thread count.
+/// The blocks are compressed here rather than by exr's writer, with zlib-rs on the calling
+/// thread: exr compresses with miniz at level 4 and, in parallel, builds a thread pool of every
+/// core for each file. (The dataset writer calls this on a thread of its own, beside the
+/// simulation; it must not wait on the rayon pool, whose workers may be waiting for it.) Each
+/// block is OpenEXR's ZIP: the samples of each line, channel after channel, in little-endian
+/// bytes; the bytes split into their even and odd halves; each byte replaced by its difference
+/// from the one before plus 128; zlib (OpenEXR file format, "ZIP compression"). A block that
+/// does not shrink is stored raw, as the format requires.
 pub fn write_exr_channels(
     width: usize,
     height: usize,
@@ -92,7 +92,6 @@ pub fn write_exr_channels(
             .all(|c| c.sample_type == sample_type)
     );
     let blocks: Vec<Chunk> = (0..height.div_ceil(ZIP_LINES))
-        .into_par_iter()
         .map(|b| {
             let lines = (b * ZIP_LINES)..((b + 1) * ZIP_LINES).min(height);
             let raw = block_bytes(width, lines, &sorted, precision);
@@ -340,18 +339,5 @@ mod tests {
         let channels = [("p", vec![0.0; 12]), ("uz", vec![0.0; 11])];
         let err = write_exr_channels(4, 3, &channels, Precision::F32).unwrap_err();
         assert_eq!(err, "channel uz has 11 samples, not 4×3");
-    }
-
-    #[test]
-    fn the_bytes_do_not_depend_on_the_thread_count() {
-        let channels = fields(64, 100);
-        let on = |threads| {
-            rayon::ThreadPoolBuilder::new()
-                .num_threads(threads)
-                .build()
-                .unwrap()
-                .install(|| write_exr_channels(64, 100, &channels, Precision::F32).unwrap())
-        };
-        assert_eq!(on(1), on(3));
     }
 }
