@@ -214,15 +214,9 @@ impl Conv {
         spec.iter().map(|c| c.re).collect()
     }
 
-    /// Inverse transform of `spec` (destroyed), keeping the window (`nx × ny`, row-major,
-    /// normalised), into `dst`. Rows are independent tasks, like the columns.
-    fn inverse_into(&self, spec: &mut [Complex<f64>], dst: &mut [f64]) {
-        self.inverse_shifted_into(spec, dst, self.nx, (0, 0));
-    }
-
     /// Inverse transform of `spec` (destroyed) into `dst`, rows of `width` values: value (i, j)
     /// of `dst` is the padded result at ((i − i0) mod px, (j − j0) mod py), `(i0, j0)` =
-    /// `origin`, normalised.
+    /// `origin`, normalised. Rows are independent tasks, like the columns.
     fn inverse_shifted_into(
         &self,
         spec: &mut [Complex<f64>],
@@ -271,22 +265,8 @@ impl Conv {
 
     /// u = K ∗ p for one real kernel spectrum, into `dst` (`nx × ny`).
     pub(crate) fn apply_into(&self, kernel: &[f64], src: &[f64], dst: &mut [f64]) {
-        let mut guard = self.buffers.lock().expect("convolution buffers");
-        let b = &mut *guard;
-        let [spec, _] = &mut b.spectra;
         let size = (self.nx, self.ny);
-        self.forward_into(
-            src,
-            size,
-            spec,
-            &mut b.real_row,
-            &mut b.complex_row,
-            &mut b.r2c_scratch,
-        );
-        for (s, k) in spec.iter_mut().zip(kernel) {
-            *s *= *k;
-        }
-        self.inverse_into(spec, dst);
+        self.spread_into(kernel, src, size, (0, 0), (dst, self.nx));
     }
 
     /// u = K ∗ p on a `width`-wide grid (`dst`) for a field `p` given on an `sx × sy` patch of
@@ -354,32 +334,12 @@ impl Conv {
     /// (u_x, u_y) = [[K_xx, K_xy], [K_xy, K_yy]] ∗ (q_x, q_y), into `dst`.
     pub(crate) fn apply_pair_into(
         &self,
-        [kxx, kyy, kxy]: [&[f64]; 3],
-        [qx, qy]: [&[f64]; 2],
-        [ux, uy]: [&mut [f64]; 2],
+        kernels: [&[f64]; 3],
+        q: [&[f64]; 2],
+        dst: [&mut [f64]; 2],
     ) {
-        let mut guard = self.buffers.lock().expect("convolution buffers");
-        let b = &mut *guard;
-        let [sx, sy] = &mut b.spectra;
         let size = (self.nx, self.ny);
-        for (q, spec) in [(qx, &mut *sx), (qy, &mut *sy)] {
-            self.forward_into(
-                q,
-                size,
-                spec,
-                &mut b.real_row,
-                &mut b.complex_row,
-                &mut b.r2c_scratch,
-            );
-        }
-        for k in 0..sx.len() {
-            let (a, c) = (sx[k], sy[k]);
-            sx[k] = a * kxx[k] + c * kxy[k];
-            sy[k] = a * kxy[k] + c * kyy[k];
-        }
-        for (spec, dst) in [(sx, ux), (sy, uy)] {
-            self.inverse_into(spec, dst);
-        }
+        self.spread_pair_into(kernels, q, size, (0, 0), (dst, self.nx));
     }
 }
 

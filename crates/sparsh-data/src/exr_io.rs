@@ -57,18 +57,7 @@ pub fn write_exr_channels(
             AnyChannel::new(*name, samples)
         })
         .collect();
-    let encoding = Encoding {
-        compression: Compression::ZIP16,
-        blocks: Blocks::ScanLines,
-        line_order: LineOrder::Increasing,
-    };
-    let layer = Layer::new(
-        (width, height),
-        LayerAttributes::named("fields"),
-        encoding,
-        AnyChannels::sort(list),
-    );
-    let image = Image::from_layer(layer);
+    let image = Image::from_layer(fields_layer(width, height, list));
     let headers = image.layer_data.infer_headers(&image.attributes);
     // Channel data in the header's (sorted) order.
     let sorted: Vec<&[f32]> = headers[0]
@@ -118,6 +107,26 @@ pub fn write_exr_channels(
     })
     .map_err(|e| e.to_string())?;
     Ok(bytes.into_inner())
+}
+
+/// The layer of a fields file: named `fields`, channels sorted by name, ZIP in blocks of 16
+/// scan lines stored in increasing order.
+fn fields_layer(
+    width: usize,
+    height: usize,
+    channels: SmallVec<[AnyChannel<FlatSamples>; 4]>,
+) -> Layer<AnyChannels<FlatSamples>> {
+    let encoding = Encoding {
+        compression: Compression::ZIP16,
+        blocks: Blocks::ScanLines,
+        line_order: LineOrder::Increasing,
+    };
+    Layer::new(
+        (width, height),
+        LayerAttributes::named("fields"),
+        encoding,
+        AnyChannels::sort(channels),
+    )
 }
 
 /// The uncompressed bytes of the scan lines `lines`: for each line, each channel's samples of
@@ -258,19 +267,8 @@ mod tests {
                 AnyChannel::new(*name, samples)
             })
             .collect();
-        let encoding = Encoding {
-            compression: Compression::ZIP16,
-            blocks: Blocks::ScanLines,
-            line_order: LineOrder::Increasing,
-        };
-        let layer = Layer::new(
-            (width, height),
-            LayerAttributes::named("fields"),
-            encoding,
-            AnyChannels::sort(list),
-        );
         let mut bytes = Cursor::new(Vec::new());
-        Image::from_layer(layer)
+        Image::from_layer(fields_layer(width, height, list))
             .write()
             .non_parallel()
             .to_buffered(&mut bytes)
