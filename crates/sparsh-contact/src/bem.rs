@@ -220,6 +220,25 @@ fn spread_length(n: usize, reach: usize) -> usize {
     smooth_length(rung)
 }
 
+/// The influence components in the order of the coefficient tables and their spectra.
+const COMPONENTS: [Component; 4] = [Component::Zz, Component::Xx, Component::Yy, Component::Xy];
+
+/// Spectra `[zz, xx, yy, xy]` on `conv`'s padded grid of the coefficient tables (non-negative
+/// offsets, rows of `row` values): zz, xx and yy are even in both offsets, xy odd in each.
+fn kernel_spectra(conv: &Conv, tables: &[Vec<f64>; 4], row: usize) -> [Vec<f64>; 4] {
+    std::array::from_fn(|c| {
+        let t = &tables[c];
+        conv.kernel_spectrum(|di, dj| {
+            let sign = if c == 3 {
+                (di.signum() * dj.signum()) as f64
+            } else {
+                1.0
+            };
+            sign * t[dj.unsigned_abs() * row + di.unsigned_abs()]
+        })
+    })
+}
+
 /// Result of the normal problem on a window.
 struct NormalSolution {
     pressure_kpa: Vec<f64>,
@@ -313,23 +332,19 @@ impl Bem {
         let tables = match &self.grid_tables {
             Some(t) => t.clone(),
             None => {
-                let t = Arc::new(
-                    [Component::Zz, Component::Xx, Component::Yy, Component::Xy]
-                        .map(|c| self.table(c, nx, ny)),
-                );
+                let t = Arc::new(COMPONENTS.map(|c| self.table(c, nx, ny)));
                 self.grid_tables = Some(t.clone());
                 t
             }
         };
         let conv = Conv::padded((px / 2).min(nx), (py / 2).min(ny), px, py);
-        let at = |t: &[f64], di: isize, dj: isize| t[dj.unsigned_abs() * nx + di.unsigned_abs()];
-        let [tzz, txx, tyy, txy] = &*tables;
+        let [zz, xx, yy, xy] = kernel_spectra(&conv, &tables, nx);
         let spread = Arc::new(Spread {
-            zz: conv.kernel_spectrum(|di, dj| at(tzz, di, dj)),
-            xx: conv.kernel_spectrum(|di, dj| at(txx, di, dj)),
-            yy: conv.kernel_spectrum(|di, dj| at(tyy, di, dj)),
-            xy: conv.kernel_spectrum(|di, dj| (di.signum() * dj.signum()) as f64 * at(txy, di, dj)),
             conv,
+            zz,
+            xx,
+            yy,
+            xy,
         });
         self.spread_cache.insert((px, py), spread.clone());
         self.stats.kernel_s += start.elapsed().as_secs_f64();
@@ -341,19 +356,9 @@ impl Bem {
             return s.clone();
         }
         let start = Instant::now();
-        let table = |c: Component| self.table(c, nx, ny);
+        let tables = COMPONENTS.map(|c| self.table(c, nx, ny));
         let conv = Conv::new(nx, ny);
-        let even = |t: &[f64]| {
-            conv.kernel_spectrum(|di, dj| t[dj.unsigned_abs() * nx + di.unsigned_abs()])
-        };
-        let zz = even(&table(Component::Zz));
-        let (txx, tyy) = (table(Component::Xx), table(Component::Yy));
-        let xx = even(&txx);
-        let yy = even(&tyy);
-        let t = table(Component::Xy);
-        let xy = conv.kernel_spectrum(|di, dj| {
-            (di.signum() * dj.signum()) as f64 * t[dj.unsigned_abs() * nx + di.unsigned_abs()]
-        });
+        let [zz, xx, yy, xy] = kernel_spectra(&conv, &tables, nx);
         let tangential_lipschitz = (0..xx.len())
             .map(|k| {
                 let (a, b, c) = (xx[k], yy[k], xy[k]);
@@ -369,8 +374,8 @@ impl Bem {
             yy,
             xy,
             tangential_lipschitz,
-            self_xx_mm_per_kpa: txx[0],
-            self_yy_mm_per_kpa: tyy[0],
+            self_xx_mm_per_kpa: tables[1][0],
+            self_yy_mm_per_kpa: tables[2][0],
         });
         self.cache.insert((nx, ny), s.clone());
         self.stats.kernel_s += start.elapsed().as_secs_f64();

@@ -8,6 +8,10 @@
 //! `tiny6`, `recipe`, `official`). Medians of the timed passes after a warm-up (at least 3
 //! passes and 1 s).
 
+mod common;
+
+use common::torch_version;
+
 use std::path::Path;
 use std::process::Command;
 use std::time::Instant;
@@ -68,16 +72,6 @@ fn torch(size: &str, [h, w, p]: [usize; 3], threads: usize, batch: usize) -> Opt
         .ok()?;
     let text = String::from_utf8_lossy(&out.stdout);
     text.split_once("frames/s ")?.1.trim().parse().ok()
-}
-
-fn torch_version() -> Option<String> {
-    let out = Command::new("python3")
-        .args(["-c", "import torch; print(torch.__version__)"])
-        .output()
-        .ok()?;
-    out.status
-        .success()
-        .then(|| String::from_utf8_lossy(&out.stdout).trim().to_string())
 }
 
 fn main() {

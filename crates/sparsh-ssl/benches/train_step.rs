@@ -21,6 +21,10 @@
 //! which on Zen 4 (two 256-bit FMA pipes; 512-bit FMAs run as two halves) approach
 //! clock × 32 per core.
 
+mod common;
+
+use common::torch_version;
+
 use std::path::Path;
 use std::process::Command;
 use std::time::Instant;
@@ -268,16 +272,6 @@ fn torch_reference(
     let step = numbers.next()?;
     let _images = numbers.next()?;
     Some((step, numbers.next()?))
-}
-
-fn torch_version() -> Option<String> {
-    let out = Command::new("python3")
-        .args(["-c", "import torch; print(torch.__version__)"])
-        .output()
-        .ok()?;
-    out.status
-        .success()
-        .then(|| String::from_utf8_lossy(&out.stdout).trim().to_string())
 }
 
 /// Median s/step of `timed` steps of the recipe `file` (`assets/ssl/{file}.toml`) on `device`
