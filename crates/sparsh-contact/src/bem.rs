@@ -121,31 +121,40 @@ impl Rect {
     fn height(&self) -> usize {
         self.j1 - self.j0
     }
-    fn contains(&self, i: usize, j: usize) -> bool {
-        (self.i0..self.i1).contains(&i) && (self.j0..self.j1).contains(&j)
+    /// The cell's own rectangle.
+    fn cell(i: usize, j: usize) -> Rect {
+        Rect {
+            i0: i,
+            i1: i + 1,
+            j0: j,
+            j1: j + 1,
+        }
+    }
+
+    /// The smallest rectangle holding both.
+    fn union(self, other: Rect) -> Rect {
+        Rect {
+            i0: self.i0.min(other.i0),
+            i1: self.i1.max(other.i1),
+            j0: self.j0.min(other.j0),
+            j1: self.j1.max(other.j1),
+        }
     }
 }
 
-/// Bounding box of the cells where `pred` holds.
+/// `bounds` grown to hold cell (i, j).
+fn include(bounds: Option<Rect>, i: usize, j: usize) -> Option<Rect> {
+    let cell = Rect::cell(i, j);
+    Some(bounds.map_or(cell, |r| r.union(cell)))
+}
+
+/// Bounding box of the cells where `pred` holds (`pred` takes the row-major index).
 fn bbox(grid: &Grid, pred: impl Fn(usize) -> bool) -> Option<Rect> {
     let mut r: Option<Rect> = None;
     for j in 0..grid.ny {
         for i in 0..grid.nx {
             if pred(j * grid.nx + i) {
-                r = Some(match r {
-                    None => Rect {
-                        i0: i,
-                        i1: i + 1,
-                        j0: j,
-                        j1: j + 1,
-                    },
-                    Some(r) => Rect {
-                        i0: r.i0.min(i),
-                        i1: r.i1.max(i + 1),
-                        j0: r.j0.min(j),
-                        j1: r.j1.max(j + 1),
-                    },
-                });
+                r = include(r, i, j);
             }
         }
     }
@@ -190,7 +199,7 @@ pub struct Bem {
     options: BemOptions,
     cache: HashMap<(usize, usize), Arc<Spectra>>,
     /// Influence coefficients of every offset on the grid, `[zz, xx, yy, xy]` (made on first
-    /// use): the spreads' kernels.
+    /// use): the kernels of every window and spread.
     grid_tables: Option<Arc<[Vec<f64>; 4]>>,
     /// Kernel spectra of the spreads onto the whole grid, by padded size.
     spread_cache: HashMap<(usize, usize), Arc<Spread>>,
@@ -320,6 +329,18 @@ impl Bem {
             .collect()
     }
 
+    /// The coefficient tables `[zz, xx, yy, xy]` of every offset on the grid (made on first
+    /// use): the kernels of every window and spread.
+    fn grid_tables(&mut self) -> Arc<[Vec<f64>; 4]> {
+        if let Some(t) = &self.grid_tables {
+            return t.clone();
+        }
+        let (nx, ny) = (self.grid.nx, self.grid.ny);
+        let t = Arc::new(COMPONENTS.map(|c| self.table(c, nx, ny)));
+        self.grid_tables = Some(t.clone());
+        t
+    }
+
     /// The spread's kernel spectra for tractions on `patch` (cached by padded size).
     fn spread(&mut self, patch: Rect) -> Arc<Spread> {
         let (nx, ny) = (self.grid.nx, self.grid.ny);
@@ -329,14 +350,7 @@ impl Bem {
             return s.clone();
         }
         let start = Instant::now();
-        let tables = match &self.grid_tables {
-            Some(t) => t.clone(),
-            None => {
-                let t = Arc::new(COMPONENTS.map(|c| self.table(c, nx, ny)));
-                self.grid_tables = Some(t.clone());
-                t
-            }
-        };
+        let tables = self.grid_tables();
         let conv = Conv::padded((px / 2).min(nx), (py / 2).min(ny), px, py);
         let [zz, xx, yy, xy] = kernel_spectra(&conv, &tables, nx);
         let spread = Arc::new(Spread {
@@ -356,9 +370,10 @@ impl Bem {
             return s.clone();
         }
         let start = Instant::now();
-        let tables = COMPONENTS.map(|c| self.table(c, nx, ny));
+        // A window lies inside the grid, so its offsets are among the grid's.
+        let tables = self.grid_tables();
         let conv = Conv::new(nx, ny);
-        let [zz, xx, yy, xy] = kernel_spectra(&conv, &tables, nx);
+        let [zz, xx, yy, xy] = kernel_spectra(&conv, &tables, self.grid.nx);
         let tangential_lipschitz = (0..xx.len())
             .map(|k| {
                 let (a, b, c) = (xx[k], yy[k], xy[k]);
@@ -1157,27 +1172,31 @@ impl Bem {
             // Contact on the window's inner edge, or interpenetration outside the window,
             // means the window was too small.
             let depth_mm = (offset_mm - nearest_mm).max(grid.cell_mm * 1e-3);
-            let escaped = |k: usize| {
-                let (i, j) = (k % grid.nx, k / grid.nx);
-                let on_inner_edge = window.contains(i, j)
-                    && ((i == window.i0 && i > 0)
-                        || (i + 1 == window.i1 && i + 1 < grid.nx)
-                        || (j == window.j0 && j > 0)
-                        || (j + 1 == window.j1 && j + 1 < grid.ny));
-                (on_inner_edge && pressure[k] > 0.0)
-                    || (!window.contains(i, j)
-                        && gap[k] + uz_into[k] - offset_mm < -1e-6 * depth_mm)
-            };
-            match bbox(&grid, escaped) {
+            let mut escaped: Option<Rect> = None;
+            for j in 0..grid.ny {
+                let row = j * grid.nx;
+                let inside_rows = (window.j0..window.j1).contains(&j);
+                let edge_row = (j == window.j0 && j > 0) || (j + 1 == window.j1 && j + 1 < grid.ny);
+                for i in 0..grid.nx {
+                    let k = row + i;
+                    let escapes = if inside_rows && (window.i0..window.i1).contains(&i) {
+                        let on_inner_edge = edge_row
+                            || (i == window.i0 && i > 0)
+                            || (i + 1 == window.i1 && i + 1 < grid.nx);
+                        on_inner_edge && pressure[k] > 0.0
+                    } else {
+                        gap[k] + uz_into[k] - offset_mm < -1e-6 * depth_mm
+                    };
+                    if escapes {
+                        escaped = include(escaped, i, j);
+                    }
+                }
+            }
+            match escaped {
                 None => break (window, pressure, uz_into),
                 Some(out) => {
                     let contact = bbox(&grid, |k| pressure[k] > 0.0).unwrap_or(out);
-                    core = Rect {
-                        i0: core.i0.min(out.i0).min(contact.i0),
-                        i1: core.i1.max(out.i1).max(contact.i1),
-                        j0: core.j0.min(out.j0).min(contact.j0),
-                        j1: core.j1.max(out.j1).max(contact.j1),
-                    };
+                    core = core.union(out).union(contact);
                     if window.width() == grid.nx && window.height() == grid.ny {
                         return Err(self.out_of_validity("contact spreads beyond the grid"));
                     }
@@ -1186,10 +1205,9 @@ impl Bem {
             }
         };
         let contact: Vec<bool> = pressure_kpa.iter().map(|&p| p > 0.0).collect();
-        let touches_edge = (0..n).any(|k| {
-            let (i, j) = (k % grid.nx, k / grid.nx);
-            contact[k] && (i == 0 || j == 0 || i + 1 == grid.nx || j + 1 == grid.ny)
-        });
+        let (nx, ny) = (grid.nx, grid.ny);
+        let touches_edge = (0..nx).any(|i| contact[i] || contact[(ny - 1) * nx + i])
+            || (0..ny).any(|j| contact[j * nx] || contact[j * nx + nx - 1]);
         if touches_edge {
             return Err(self.out_of_validity("the contact patch touches the grid edge"));
         }

@@ -81,7 +81,7 @@ pub struct Frame {
 /// Seconds spent in each stage of a frame.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct StageTimes {
-    /// Ray-casting the gap field.
+    /// Ray-casting the gap field (overlapping the previous frame's contact solve).
     pub gap_s: f64,
     /// The contact solve.
     pub contact_s: f64,
@@ -94,8 +94,6 @@ struct Solved {
     gap: GapField,
     fields: Fields,
     pose: Pose,
-    /// Seconds spent casting the gap field.
-    gap_s: f64,
 }
 
 /// One frame's mechanics, ready for its image: the fields over the camera's view and what the
@@ -121,13 +119,36 @@ struct Mechanics {
     solver: Box<dyn ContactSolver>,
     previous_pose: Option<Pose>,
     next: usize,
+    /// The gap field of frame `next`, cast while the frame before it was solved.
+    cast_ahead: Option<Cast>,
+}
+
+/// A frame's gap field and the seconds its casting took.
+struct Cast {
+    index: usize,
+    gap: GapField,
+    gap_s: f64,
+}
+
+impl Cast {
+    /// Casts the gap field of `target` on the scene's mechanics grid. It depends on the
+    /// commanded pose alone, not on the contact history.
+    fn of(scene: &Scene, target: &FrameTarget) -> Cast {
+        let start = Instant::now();
+        let gap = GapField::cast(&scene.indenter, &target.pose, scene.mechanics_grid());
+        Cast {
+            index: target.index,
+            gap,
+            gap_s: start.elapsed().as_secs_f64(),
+        }
+    }
 }
 
 /// Runs one scene's trajectory frame by frame.
 ///
 /// The contact of frame k + 1 depends on frame k's (stick/slip history) but frame k's image does
-/// not, so while frame k's image is formed the next frame's contact is already being solved
-/// (two tasks on the rayon pool). Each stage is deterministic, so the frames are the same bits
+/// not, so while frame k's image is formed the next frame's contact is already being solved,
+/// and the gap field of the frame after that cast (tasks on the rayon pool). Each stage is deterministic, so the frames are the same bits
 /// as one stage after the other, whatever the thread count.
 pub struct Simulator {
     scene: Scene,
@@ -155,6 +176,7 @@ impl Simulator {
                 solver,
                 previous_pose: None,
                 next: 0,
+                cast_ahead: None,
             },
             scene,
             renderer,
@@ -205,21 +227,30 @@ impl Mechanics {
     fn next_contact(&mut self, scene: &Scene) -> Option<Result<Contacted, SimError>> {
         let target = *self.targets.get(self.next)?;
         self.next += 1;
-        Some(self.contact(scene, target))
+        let cast = match self.cast_ahead.take() {
+            Some(cast) if cast.index == target.index => cast,
+            _ => Cast::of(scene, &target),
+        };
+        let following = self.targets.get(self.next).copied();
+        let (contacted, ahead) = rayon::join(
+            || self.contact(scene, target, cast),
+            || following.map(|t| Cast::of(scene, &t)),
+        );
+        self.cast_ahead = ahead;
+        Some(contacted)
     }
 
-    /// Casts the gap field at `target` and solves its contact with `solver`, after the frame
+    /// Solves the contact of `target` (its gap field `cast`) with `solver`, after the frame
     /// posed at `previous`.
     fn solve_contact(
         scene: &Scene,
         solver: &mut dyn ContactSolver,
         target: &FrameTarget,
+        cast: Cast,
         previous: Option<&Pose>,
     ) -> Result<Solved, SimError> {
         let grid = scene.mechanics_grid();
-        let start = Instant::now();
-        let gap = GapField::cast(&scene.indenter, &target.pose, grid);
-        let gap_s = start.elapsed().as_secs_f64();
+        let Cast { gap, .. } = cast;
         let rigid_shift_mm = match previous {
             Some(previous) => rigid_shift_mm(previous, &target.pose, &gap),
             None => vec![[0.0; 2]; grid.len()],
@@ -237,12 +268,7 @@ impl Mechanics {
         })?;
         let mut pose = target.pose;
         pose.position_mm.z -= fields.approach_offset_mm;
-        Ok(Solved {
-            gap,
-            fields,
-            pose,
-            gap_s,
-        })
+        Ok(Solved { gap, fields, pose })
     }
 
     /// Contact radius over gel thickness (the radius of a circle of the contact's area) and
@@ -300,23 +326,33 @@ impl Mechanics {
         let mut solver = solver_for(rung, &scene.gel, scene.mechanics_grid());
         let mut previous = None;
         for earlier in &self.targets[..target.index] {
+            let cast = Cast::of(scene, earlier);
             let solved =
-                Mechanics::solve_contact(scene, solver.as_mut(), earlier, previous.as_ref())?;
+                Mechanics::solve_contact(scene, solver.as_mut(), earlier, cast, previous.as_ref())?;
             previous = Some(solved.pose);
         }
-        let solved = Mechanics::solve_contact(scene, solver.as_mut(), target, previous.as_ref())?;
+        let cast = Cast::of(scene, target);
+        let solved =
+            Mechanics::solve_contact(scene, solver.as_mut(), target, cast, previous.as_ref())?;
         self.rung = rung;
         self.limits = limits;
         self.solver = solver;
         Ok(Some(solved))
     }
 
-    fn contact(&mut self, scene: &Scene, target: FrameTarget) -> Result<Contacted, SimError> {
+    fn contact(
+        &mut self,
+        scene: &Scene,
+        target: FrameTarget,
+        cast: Cast,
+    ) -> Result<Contacted, SimError> {
         let start = Instant::now();
+        let gap_s = cast.gap_s;
         let mut solved = Mechanics::solve_contact(
             scene,
             self.solver.as_mut(),
             &target,
+            cast,
             self.previous_pose.as_ref(),
         )?;
         let mut validity = self.validity(scene, &solved);
@@ -341,12 +377,7 @@ impl Mechanics {
                 }
             }
         }
-        let Solved {
-            fields,
-            pose,
-            gap_s,
-            ..
-        } = solved;
+        let Solved { fields, pose, .. } = solved;
         self.previous_pose = Some(pose);
         let slip_state = fields.slip_state();
         let contact_area_mm2 = fields.contact_area_mm2();
@@ -360,7 +391,7 @@ impl Mechanics {
             solver: self.rung,
             validity,
             gap_s,
-            contact_s: start.elapsed().as_secs_f64() - gap_s,
+            contact_s: start.elapsed().as_secs_f64(),
         })
     }
 }
