@@ -203,6 +203,8 @@ pub struct Bem {
     grid_tables: Option<Arc<[Vec<f64>; 4]>>,
     /// Kernel spectra of the spreads onto the whole grid, by padded size.
     spread_cache: HashMap<(usize, usize), Arc<Spread>>,
+    normal_work: NormalWork,
+    newton_work: NewtonWork,
     history: Option<History>,
     stats: BemStats,
 }
@@ -248,9 +250,24 @@ fn kernel_spectra(conv: &Conv, tables: &[Vec<f64>; 4], row: usize) -> [Vec<f64>;
     })
 }
 
-/// Result of the normal problem on a window.
-struct NormalSolution {
+/// Buffers of the normal problem on a window, kept from frame to frame: once the window has
+/// reached its size a solve allocates nothing.
+#[derive(Debug, Default)]
+struct NormalWork {
+    /// The window's gap (mm), the input.
+    gap_mm: Vec<f64>,
+    /// Pressures (kPa): the initial guess in, the solution out.
     pressure_kpa: Vec<f64>,
+    /// Conjugate direction, gap residual, displacement K p, K t and the last pressures.
+    t: Vec<f64>,
+    g: Vec<f64>,
+    u_mm: Vec<f64>,
+    kt_mm: Vec<f64>,
+    p_old: Vec<f64>,
+}
+
+/// Result of the normal problem on a window (the pressures are left in [`NormalWork`]).
+struct NormalSolution {
     offset_mm: f64,
     convolutions: usize,
 }
@@ -267,6 +284,8 @@ impl Bem {
             cache: HashMap::new(),
             grid_tables: None,
             spread_cache: HashMap::new(),
+            normal_work: NormalWork::default(),
+            newton_work: NewtonWork::default(),
             history: None,
             stats: BemStats::default(),
         }
@@ -413,16 +432,35 @@ impl Bem {
     fn solve_normal(
         &self,
         spectra: &Spectra,
-        gap_mm: &[f64],
-        initial_kpa: Vec<f64>,
+        work: &mut NormalWork,
         offset_mm: f64,
         load_n: Option<f64>,
     ) -> Result<NormalSolution, ContactError> {
         let conv = &spectra.conv;
+        let NormalWork {
+            gap_mm,
+            pressure_kpa: p,
+            t,
+            g,
+            u_mm,
+            kt_mm,
+            p_old,
+        } = work;
         let n = gap_mm.len();
         let da = self.grid.cell_area_mm2() * 1e-3; // N per kPa
-        let mut p = initial_kpa;
-        let [mut t, mut g, mut u_mm, mut kt_mm, mut p_old] = std::array::from_fn(|_| vec![0.0; n]);
+        for v in [&mut *t, &mut *g, &mut *u_mm, &mut *kt_mm, &mut *p_old] {
+            v.clear();
+            v.resize(n, 0.0);
+        }
+        let (gap_mm, p, t, g, u_mm, kt_mm, p_old) = (
+            gap_mm.as_slice(),
+            p.as_mut_slice(),
+            t.as_mut_slice(),
+            g.as_mut_slice(),
+            u_mm.as_mut_slice(),
+            kt_mm.as_mut_slice(),
+            p_old.as_mut_slice(),
+        );
         let mut u_current = false;
         let mut g_old = 1.0;
         let mut conjugate = false;
@@ -430,7 +468,7 @@ impl Bem {
         let mut convolutions = 0;
         for _ in 0..self.options.max_iterations {
             if !u_current {
-                conv.apply_into(&spectra.zz, &p, &mut u_mm);
+                conv.apply_into(&spectra.zz, p, u_mm);
                 convolutions += 1;
             }
             let mut sum_g = 0.0;
@@ -463,12 +501,11 @@ impl Bem {
             g_old = big_g;
             if big_g == 0.0 {
                 return Ok(NormalSolution {
-                    pressure_kpa: p,
                     offset_mm: mean_gap,
                     convolutions,
                 });
             }
-            conv.apply_into(&spectra.zz, &t, &mut kt_mm);
+            conv.apply_into(&spectra.zz, t, kt_mm);
             convolutions += 1;
             // Under load control the response r = Kt − mean(Kt) over the contact set.
             let mean_r = if load_n.is_some() {
@@ -490,7 +527,7 @@ impl Bem {
             let tau = gt / rt;
             let mut overlap = false;
             let mut clipped = false;
-            p_old.copy_from_slice(&p);
+            p_old.copy_from_slice(p);
             for k in 0..n {
                 if p[k] > 0.0 {
                     let v = p[k] - tau * t[k];
@@ -505,7 +542,7 @@ impl Bem {
             if p.iter().all(|&v| v == 0.0) {
                 // The step lifted every cell off (a guess far too stiff, e.g. a flat face pressed
                 // uniformly): halve the previous pressures and restart the conjugate directions.
-                for (v, old) in p.iter_mut().zip(&p_old) {
+                for (v, old) in p.iter_mut().zip(p_old.iter()) {
                     *v = 0.5 * old;
                 }
                 conjugate = false;
@@ -521,14 +558,14 @@ impl Bem {
             }
             u_current = !(overlap || clipped);
             if u_current {
-                for (u, kt) in u_mm.iter_mut().zip(&kt_mm) {
+                for (u, kt) in u_mm.iter_mut().zip(kt_mm.iter()) {
                     *u = factor * (*u - tau * kt);
                 }
             }
             let sum_p: f64 = p.iter().sum();
             change = p
                 .iter()
-                .zip(&p_old)
+                .zip(p_old.iter())
                 .map(|(a, b)| (a - b).abs())
                 .sum::<f64>()
                 / sum_p;
@@ -537,7 +574,6 @@ impl Bem {
             }
             if change < self.options.normal_tolerance {
                 return Ok(NormalSolution {
-                    pressure_kpa: p,
                     offset_mm: mean_gap,
                     convolutions,
                 });
@@ -562,6 +598,7 @@ impl Bem {
     fn solve_tangential(
         &self,
         spectra: &Spectra,
+        work: &mut NewtonWork,
         bound_kpa: &[f64],
         target_mm: [&[f64]; 2],
         initial_kpa: Pair,
@@ -584,7 +621,7 @@ impl Bem {
             Solved::Converged(q, s)
         } else {
             match self.options.tangential_method {
-                TangentialMethod::SemismoothNewton => match problem.newton(q) {
+                TangentialMethod::SemismoothNewton => match problem.newton(q, work) {
                     // Newton stalled: the accelerated gradient from its best iterate.
                     Solved::Stalled(q, _) => problem.fista(q),
                     converged => converged,
@@ -640,6 +677,16 @@ struct Tangential<'a> {
     tolerance: f64,
     max_iterations: usize,
     convolutions: usize,
+}
+
+/// Buffers of the semi-smooth Newton method, kept from frame to frame.
+#[derive(Debug, Default)]
+struct NewtonWork {
+    states: Vec<CellState>,
+    /// d0, K d0, x, K x, r, z, p and K p of a step.
+    scratch: [Pair; 8],
+    /// The iterate of smallest residual.
+    best_kpa: Pair,
 }
 
 /// A cell's state in a semi-smooth Newton step.
@@ -704,18 +751,31 @@ impl Tangential<'_> {
     /// tractions and the slip cells' components along t ⊥ n, (ΠKΠ + Λ) v = b with
     /// Λ = (1 − α)/(cα) on the slip components: symmetric positive definite, so conjugate
     /// gradients with a Jacobi preconditioner and inexact (forcing √‖F‖) solves.
-    fn newton(&mut self, mut q: Pair) -> Solved {
+    fn newton(&mut self, q: Pair, work: &mut NewtonWork) -> Solved {
         let n = self.bound_kpa.len();
+        let NewtonWork {
+            states,
+            scratch,
+            best_kpa,
+        } = work;
+        states.clear();
+        states.resize(n, CellState::Free);
+        for v in scratch.iter_mut().flatten() {
+            v.clear();
+            v.resize(n, 0.0);
+        }
+        let [d0, kd0, x, kx, r, z, p, kp] = scratch;
+        for (b, v) in best_kpa.iter_mut().zip(&q) {
+            b.clone_from(v);
+        }
+        let mut q = q;
         let c = self.step_kpa_per_mm;
         let (kxx, kyy) = (
             self.spectra.self_xx_mm_per_kpa,
             self.spectra.self_yy_mm_per_kpa,
         );
         let mut s = self.zeros();
-        let mut states = vec![CellState::Free; n];
-        let [mut d0, mut kd0, mut x, mut kx, mut r, mut z, mut p, mut kp] =
-            std::array::from_fn(|_| self.zeros());
-        let mut best = (f64::INFINITY, q.clone());
+        let mut best_residual = f64::INFINITY;
         let mut since_best = 0;
         let mut corrected = false;
         self.slip_increment(&q, &mut s);
@@ -754,19 +814,19 @@ impl Tangential<'_> {
                     return Solved::Converged(q, s);
                 }
                 corrected = true;
-                self.correct_net_traction(&states, &mut q, &mut s, [&mut p, &mut kp, &mut z]);
+                self.correct_net_traction(states, &mut q, &mut s, [p, kp, z]);
                 continue;
             }
-            if residual < best.0 {
-                best.0 = residual;
-                for (b, v) in best.1.iter_mut().zip(&q) {
+            if residual < best_residual {
+                best_residual = residual;
+                for (b, v) in best_kpa.iter_mut().zip(&q) {
                     b.copy_from_slice(v);
                 }
                 since_best = 0;
             } else {
                 since_best += 1;
                 if since_best >= 3 {
-                    return Solved::Stalled(best.1, best.0);
+                    return Solved::Stalled(std::mem::take(best_kpa), best_residual);
                 }
             }
             // The fixed normal parts d0 on slip cells, and K d0.
@@ -784,7 +844,7 @@ impl Tangential<'_> {
                 d0[1][k] = v[1];
             }
             if any_d0 {
-                self.apply(&d0, &mut kd0);
+                self.apply(d0, kd0);
             } else {
                 kd0.iter_mut().for_each(|v| v.fill(0.0));
             }
@@ -835,15 +895,15 @@ impl Tangential<'_> {
                     .sum()
             };
             let forcing = residual.sqrt().min(0.1);
-            let r0 = dot(&r, &r).sqrt();
-            precondition(&r, &mut z);
-            p.clone_from(&z);
-            let mut rz = dot(&r, &z);
+            let r0 = dot(r, r).sqrt();
+            precondition(r, z);
+            p.clone_from(z);
+            let mut rz = dot(r, z);
             for _ in 0..self.max_iterations {
                 if r0 == 0.0 {
                     break;
                 }
-                self.apply(&p, &mut kp);
+                self.apply(p, kp);
                 // A p = Π K p + Λ p, kept in r's slot after the step length is known.
                 let mut p_ap = 0.0;
                 for k in 0..n {
@@ -862,11 +922,11 @@ impl Tangential<'_> {
                         r[c][k] -= alpha * ap[c];
                     }
                 }
-                if dot(&r, &r).sqrt() <= forcing * r0 {
+                if dot(r, r).sqrt() <= forcing * r0 {
                     break;
                 }
-                precondition(&r, &mut z);
-                let rz_next = dot(&r, &z);
+                precondition(r, z);
+                let rz_next = dot(r, z);
                 let beta = rz_next / rz;
                 rz = rz_next;
                 for c in 0..2 {
@@ -884,7 +944,7 @@ impl Tangential<'_> {
             self.project(&mut q);
             self.slip_increment(&q, &mut s);
         }
-        Solved::Stalled(best.1, best.0)
+        Solved::Stalled(std::mem::take(best_kpa), best_residual)
     }
 
     /// Galerkin correction of a converged, fully stuck Newton iterate by a uniform traction on
@@ -1009,13 +1069,11 @@ fn project_state(state: CellState, kp: [f64; 2], p: [f64; 2]) -> [f64; 2] {
     }
 }
 
-/// Copies the cells of `window` out of a whole-grid field.
-fn crop(grid: &Grid, window: Rect, field: &[f64]) -> Vec<f64> {
-    let mut out = Vec::with_capacity(window.width() * window.height());
-    for j in window.j0..window.j1 {
-        out.extend_from_slice(&field[j * grid.nx + window.i0..j * grid.nx + window.i1]);
-    }
-    out
+/// The whole-grid indices of the cells of `window`, row by row (of known length, so collecting
+/// them allocates once).
+fn cells(grid: &Grid, window: Rect) -> impl ExactSizeIterator<Item = usize> + use<> {
+    let (nx, w) = (grid.nx, window.width());
+    (0..w * window.height()).map(move |c| (window.j0 + c / w) * nx + window.i0 + c % w)
 }
 
 /// Writes a window field into a whole-grid field (zero elsewhere).
@@ -1115,30 +1173,27 @@ impl Bem {
         let (window, pressure_kpa, uz_into_mm) = loop {
             let window = window_around(&grid, core, grow);
             let spectra = self.spectra(window.width(), window.height());
-            let gap_w = crop(&grid, window, gap);
-            // Warm start: the last two frames' pressures extrapolated linearly in time.
-            let mut initial = match previous.filter(|_| self.options.warm_start) {
-                Some(h) => {
-                    let mut p = crop(&grid, window, &h.pressure_kpa);
-                    if let Some(before) = &h.pressure_before_kpa {
-                        for (v, b) in p.iter_mut().zip(crop(&grid, window, before)) {
-                            *v = (2.0 * *v - b).max(0.0);
-                        }
-                    }
-                    p
+            let mut work = std::mem::take(&mut self.normal_work);
+            work.gap_mm.clear();
+            work.gap_mm.extend(cells(&grid, window).map(|k| gap[k]));
+            // Warm start: the last two frames' pressures extrapolated linearly in time; no
+            // pressure where the indenter has moved away from a cell altogether.
+            work.pressure_kpa.clear();
+            work.pressure_kpa.extend(cells(&grid, window).map(|k| {
+                match previous.filter(|_| self.options.warm_start) {
+                    _ if !gap[k].is_finite() => 0.0,
+                    Some(h) => match &h.pressure_before_kpa {
+                        Some(before) => (2.0 * h.pressure_kpa[k] - before[k]).max(0.0),
+                        None => h.pressure_kpa[k],
+                    },
+                    None => 0.0,
                 }
-                None => vec![0.0; gap_w.len()],
-            };
-            // No pressure where the indenter has moved away from a cell altogether.
-            for (p, g) in initial.iter_mut().zip(&gap_w) {
-                if !g.is_finite() {
-                    *p = 0.0;
-                }
-            }
+            }));
+            let (gap_w, initial) = (&work.gap_mm, &mut work.pressure_kpa);
             if initial.iter().all(|&p| p == 0.0) {
                 let penetrating = gap_w.iter().filter(|&&g| g < offset_mm).count().max(1);
                 let radius_mm = (penetrating as f64 * grid.cell_area_mm2() / 3.0).sqrt();
-                for (p, g) in initial.iter_mut().zip(&gap_w) {
+                for (p, g) in initial.iter_mut().zip(gap_w) {
                     *p = (e_star * (offset_mm - g) / radius_mm).max(0.0);
                 }
                 if initial.iter().all(|&p| p == 0.0) {
@@ -1155,16 +1210,18 @@ impl Bem {
                 let total = initial.iter().sum::<f64>() * da_n;
                 initial.iter_mut().for_each(|p| *p *= load / total);
             }
-            let normal = self.solve_normal(&spectra, &gap_w, initial, offset_mm, load_n)?;
+            let normal = self.solve_normal(&spectra, &mut work, offset_mm, load_n);
+            self.normal_work = work;
+            let normal = normal?;
             self.stats.normal_convolutions += normal.convolutions;
             self.stats.normal_windows += 1;
             offset_mm = normal.offset_mm;
-            let pressure = embed(&grid, window, &normal.pressure_kpa);
+            let pressure = embed(&grid, window, &self.normal_work.pressure_kpa);
             let mut uz_into = vec![0.0; n];
             let spread = self.spread(window);
             spread.conv.spread_into(
                 &spread.zz,
-                &normal.pressure_kpa,
+                &self.normal_work.pressure_kpa,
                 (window.width(), window.height()),
                 (window.i0, window.j0),
                 (&mut uz_into, grid.nx),
@@ -1229,38 +1286,37 @@ impl Bem {
             .unwrap_or(window);
         let spectra = self.spectra(patch.width(), patch.height());
         let mu = self.gel.friction;
-        let bound: Vec<f64> = crop(&grid, patch, &pressure_kpa)
-            .iter()
-            .map(|p| mu * p)
-            .collect();
-        let shift = [0, 1].map(|c| {
-            let all: Vec<f64> = input.rigid_shift_mm.iter().map(|s| s[c]).collect();
-            crop(&grid, patch, &all)
-        });
-        let target = [0, 1].map(|c| {
-            let prev = match previous {
-                Some(h) => crop(&grid, patch, &h.u_tangential_mm[c]),
-                None => vec![0.0; shift[c].len()],
-            };
-            prev.iter()
-                .zip(&shift[c])
-                .map(|(u, s)| u + s)
-                .collect::<Vec<f64>>()
-        });
-        let initial = [0, 1].map(|c| match previous.filter(|_| self.options.warm_start) {
-            Some(h) => {
-                let mut q = crop(&grid, patch, &h.traction_kpa[c]);
-                if let Some(before) = &h.traction_before_kpa {
-                    for (v, b) in q.iter_mut().zip(crop(&grid, patch, &before[c])) {
-                        *v = 2.0 * *v - b;
-                    }
-                }
-                q
+        let bound: Vec<f64> = cells(&grid, patch).map(|k| mu * pressure_kpa[k]).collect();
+        let shift = &input.rigid_shift_mm;
+        let target = [0, 1].map(|c| -> Vec<f64> {
+            match previous {
+                Some(h) => cells(&grid, patch)
+                    .map(|k| h.u_tangential_mm[c][k] + shift[k][c])
+                    .collect(),
+                None => cells(&grid, patch).map(|k| shift[k][c]).collect(),
             }
-            None => vec![0.0; bound.len()],
         });
-        let (traction_w, slip_increment, convolutions) =
-            self.solve_tangential(&spectra, &bound, [&target[0], &target[1]], initial)?;
+        let initial = [0, 1].map(|c| -> Vec<f64> {
+            match previous.filter(|_| self.options.warm_start) {
+                Some(h) => match &h.traction_before_kpa {
+                    Some(before) => cells(&grid, patch)
+                        .map(|k| 2.0 * h.traction_kpa[c][k] - before[c][k])
+                        .collect(),
+                    None => cells(&grid, patch).map(|k| h.traction_kpa[c][k]).collect(),
+                },
+                None => vec![0.0; bound.len()],
+            }
+        });
+        let mut work = std::mem::take(&mut self.newton_work);
+        let solved = self.solve_tangential(
+            &spectra,
+            &mut work,
+            &bound,
+            [&target[0], &target[1]],
+            initial,
+        );
+        self.newton_work = work;
+        let (traction_w, slip_increment, convolutions) = solved?;
         self.stats.tangential_convolutions = convolutions;
         self.stats.tangential_s = tangential_start.elapsed().as_secs_f64();
         let target_scale = target.iter().flatten().fold(0.0f64, |m, v| m.max(v.abs()));
@@ -1346,5 +1402,106 @@ impl ContactSolver for Bem {
 
     fn reset(&mut self) {
         self.history = None;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::alloc::{GlobalAlloc, Layout, System};
+    use std::cell::Cell;
+
+    use super::*;
+
+    /// The system allocator, counting the allocations of each thread.
+    struct Counting;
+
+    thread_local! {
+        static ALLOCATIONS: Cell<usize> = const { Cell::new(0) };
+    }
+
+    unsafe impl GlobalAlloc for Counting {
+        unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+            ALLOCATIONS.with(|n| n.set(n.get() + 1));
+            unsafe { System.alloc(layout) }
+        }
+        unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+            unsafe { System.dealloc(ptr, layout) }
+        }
+        unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
+            ALLOCATIONS.with(|n| n.set(n.get() + 1));
+            unsafe { System.realloc(ptr, layout, new_size) }
+        }
+    }
+
+    #[global_allocator]
+    static COUNTING: Counting = Counting;
+
+    /// A frame of a press after another allocates nothing in the normal solve, and its force is
+    /// Hertz's (F = 4/3 E* √R δ^3/2) to the grid's accuracy.
+    #[test]
+    fn a_warm_normal_solve_allocates_nothing() {
+        let grid = Grid {
+            nx: 64,
+            ny: 64,
+            cell_mm: 0.05,
+        };
+        let gel = Gel {
+            youngs_modulus_kpa: 300.0,
+            poisson_ratio: 0.48,
+            thickness_mm: 3.0,
+            friction: 1.0,
+        };
+        let radius_mm = 6.0;
+        let mut bem = Bem::halfspace(gel, grid);
+        let window = Rect {
+            i0: 0,
+            i1: grid.nx,
+            j0: 0,
+            j1: grid.ny,
+        };
+        let spectra = bem.spectra(grid.nx, grid.ny);
+        let gap_of = |depth_mm: f64| {
+            cells(&grid, window).map(move |k| {
+                let (i, j) = (k % grid.nx, k / grid.nx);
+                let x = (i as f64 + 0.5 - 32.0) * grid.cell_mm;
+                let y = (j as f64 + 0.5 - 32.0) * grid.cell_mm;
+                (x * x + y * y) / (2.0 * radius_mm) - depth_mm
+            })
+        };
+        let mut work = NormalWork::default();
+        work.gap_mm.extend(gap_of(0.04));
+        work.pressure_kpa
+            .extend(work.gap_mm.iter().map(|g| (-g).max(0.0)));
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(1)
+            .build()
+            .expect("a pool");
+        pool.install(|| {
+            // The first frame sizes the buffers (which shows the count works).
+            let start = ALLOCATIONS.with(Cell::get);
+            bem.solve_normal(&spectra, &mut work, 0.0, None)
+                .expect("the first frame converges");
+            assert!(ALLOCATIONS.with(Cell::get) > start);
+            let depth_mm = 0.05;
+            let before = ALLOCATIONS.with(Cell::get);
+            work.gap_mm.clear();
+            work.gap_mm.extend(gap_of(depth_mm));
+            let solved = bem
+                .solve_normal(&spectra, &mut work, 0.0, None)
+                .expect("the second frame converges");
+            let allocations = ALLOCATIONS.with(Cell::get) - before;
+            assert_eq!(allocations, 0, "allocations in a warm normal solve");
+            assert!(solved.convolutions > 0);
+            let force_n = work.pressure_kpa.iter().sum::<f64>() * grid.cell_area_mm2() * 1e-3;
+            let hertz_n = 4.0 / 3.0
+                * gel.effective_modulus_kpa()
+                * radius_mm.sqrt()
+                * depth_mm.powf(1.5)
+                * 1e-3;
+            assert!(
+                (force_n / hertz_n - 1.0).abs() < 0.03,
+                "force {force_n} N vs Hertz {hertz_n} N"
+            );
+        });
     }
 }
