@@ -137,7 +137,9 @@ pub fn probe(
         None => None,
     };
     let patch_scores = match patches {
-        true => Some(probe_patches_with_progress(&recipe, data, &seeds, &fitted)?),
+        true => Some(probe_patches_with_progress(
+            &recipe, data, &seeds, device, &fitted,
+        )?),
         false => None,
     };
     progress.finish();

@@ -122,7 +122,14 @@ impl ProbeSet {
     /// The attentive probe (as in [`ProbeSet::score`]) on the raw input patches instead of an
     /// encoder's tokens: the `patch`×`patch` squares of every frame and channel of a sample,
     /// flattened into one token each (no positions): what any encoder's tokens are up against.
-    pub fn score_patches(&self, patch: usize, attentive_epochs: usize, seed: u64) -> f64 {
+    /// Trained on `device` (the probe drawn on the CPU under `seed` and moved).
+    pub fn score_patches(
+        &self,
+        patch: usize,
+        attentive_epochs: usize,
+        seed: u64,
+        device: &Device,
+    ) -> f64 {
         let (tokens, dims) = self.patch_tokens(patch);
         attentive_score(
             &tokens,
@@ -131,7 +138,7 @@ impl ProbeSet {
             &self.test,
             attentive_epochs,
             seed,
-            &Device::flex(),
+            device,
         )
     }
 

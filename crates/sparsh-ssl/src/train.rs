@@ -527,9 +527,14 @@ pub fn probe_random_encoders_with_progress(
 }
 
 /// The attentive force probe of `recipe` on the raw input patches of `data` (no encoder), once
-/// per probe seed in `seeds`: RMSE in mN.
-pub fn probe_patches(recipe: &Recipe, data: &[PathBuf], seeds: &[u64]) -> Result<Vec<f64>, Error> {
-    probe_patches_with_progress(recipe, data, seeds, &|| {})
+/// per probe seed in `seeds`: RMSE in mN. Computed on `device`.
+pub fn probe_patches(
+    recipe: &Recipe,
+    data: &[PathBuf],
+    seeds: &[u64],
+    device: &Device,
+) -> Result<Vec<f64>, Error> {
+    probe_patches_with_progress(recipe, data, seeds, device, &|| {})
 }
 
 /// [`probe_patches`], calling `fitted` after each probe fit.
@@ -537,6 +542,7 @@ pub fn probe_patches_with_progress(
     recipe: &Recipe,
     data: &[PathBuf],
     seeds: &[u64],
+    device: &Device,
     fitted: &dyn Fn(),
 ) -> Result<Vec<f64>, Error> {
     recipe.validate()?;
@@ -549,7 +555,12 @@ pub fn probe_patches_with_progress(
     Ok(seeds
         .iter()
         .map(|&seed| {
-            let s = set.score_patches(recipe.encoder.patch_size, recipe.log.probe_epochs, seed);
+            let s = set.score_patches(
+                recipe.encoder.patch_size,
+                recipe.log.probe_epochs,
+                seed,
+                device,
+            );
             fitted();
             s
         })

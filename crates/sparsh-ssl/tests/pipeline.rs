@@ -237,9 +237,14 @@ fn label_budget_thins_the_fitted_samples_only() {
     // the raw-patch probe has no ridge fallback: without attentive epochs it refuses
     let mut ridge_only = r.clone();
     ridge_only.log.probe_epochs = 0;
-    let err = probe_patches(&ridge_only, std::slice::from_ref(&data), &[0])
-        .unwrap_err()
-        .to_string();
+    let err = probe_patches(
+        &ridge_only,
+        std::slice::from_ref(&data),
+        &[0],
+        &Device::flex(),
+    )
+    .unwrap_err()
+    .to_string();
     assert!(err.contains("probe_epochs"), "{err}");
     for f in [0.0, -0.5, 1.5, f64::NAN] {
         let mut bad = r.clone();
