@@ -1,11 +1,12 @@
 //! `sparsh fieldprobe train | eval` end to end on a small generated dataset with fields: the
-//! decoders, the references, the report files; training reads no field; one-line errors.
+//! decoders, the references, the report files; training reads no field; one-line errors; the
+//! same run on wgpu as on the CPU.
 
 use std::path::{Path, PathBuf};
 use std::process::Output;
 
 mod common;
-use common::{RECIPE, assert_user_error, sparsh, stderr};
+use common::{RECIPE, assert_user_error, sparsh, stderr, wgpu_or_skip};
 
 /// DIGIT (markerless) and GelSight 2017 (markers) presses and slides at 160 × 120 with every
 /// field at stride 2; held-out cylinders.
@@ -92,6 +93,10 @@ fn setup(dir: &Path) -> PathBuf {
 }
 
 fn train(dir: &Path, config: &str, data: &Path, out: &str) -> Output {
+    train_on(dir, config, data, out, "cpu")
+}
+
+fn train_on(dir: &Path, config: &str, data: &Path, out: &str, device: &str) -> Output {
     sparsh(&[
         "fieldprobe",
         "train",
@@ -104,6 +109,8 @@ fn train(dir: &Path, config: &str, data: &Path, out: &str) -> Output {
         "--out",
         dir.join(out).to_str().unwrap(),
         "--quick",
+        "--device",
+        device,
     ])
 }
 
@@ -272,4 +279,143 @@ fn bad_field_probe_inputs_are_one_line_errors() {
         empty.to_str().unwrap(),
     ]);
     assert_user_error(&out, "run.json");
+}
+
+/// `fieldprobe train` and `eval` with `--device wgpu` (Mesa's lavapipe here, a software Vulkan
+/// driver) give the CPU's run: every decoder's first and last training loss, and every score
+/// of the report, differ only by floating-point rounding (the models are drawn on the CPU
+/// under the seed and moved).
+#[test]
+fn fieldprobe_on_wgpu_matches_the_cpu() {
+    if !wgpu_or_skip() {
+        return;
+    }
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    let data = setup(dir);
+    // the self-supervised decoder and the supervised ceiling (a random draw takes the first's
+    // path): lavapipe is some 10× slower than the CPU
+    let config = CONFIG.replace("random_draws = 2", "random_draws = 0");
+    std::fs::write(dir.join("devices.toml"), config).unwrap();
+    let run_on = |device: &str| {
+        let t0 = std::time::Instant::now();
+        let name = format!("run_{device}");
+        let out = train_on(dir, "devices.toml", &data, &name, device);
+        assert!(out.status.success(), "{device}: {}", stderr(&out));
+        let run = dir.join(&name);
+        let out = sparsh(&[
+            "fieldprobe",
+            "eval",
+            "--run",
+            run.to_str().unwrap(),
+            "--data",
+            data.to_str().unwrap(),
+            "--device",
+            device,
+        ]);
+        assert!(out.status.success(), "{device}: {}", stderr(&out));
+        eprintln!("{device}: {:.1} s", t0.elapsed().as_secs_f64());
+        run
+    };
+    let (cpu, gpu) = (run_on("cpu"), run_on("wgpu"));
+    let losses = |run: &Path| -> Vec<(String, f64, f64)> {
+        let v: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(run.join("run.json")).unwrap()).unwrap();
+        v["decoders"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|d| {
+                let l = d["loss_first_last"].as_array().unwrap();
+                (
+                    d["name"].as_str().unwrap().to_string(),
+                    l[0].as_f64().unwrap(),
+                    l[1].as_f64().unwrap(),
+                )
+            })
+            .collect()
+    };
+    let mut worst_loss = 0f64;
+    for (a, b) in losses(&cpu).iter().zip(losses(&gpu)) {
+        assert_eq!(a.0, b.0);
+        let rel = ((a.1 - b.1).abs() / a.1.abs()).max((a.2 - b.2).abs() / a.2.abs());
+        eprintln!(
+            "{}: loss {:.6} → {:.6} on the CPU, {:.6} → {:.6} on wgpu ({rel:.1e})",
+            a.0, a.1, a.2, b.1, b.2
+        );
+        worst_loss = worst_loss.max(rel);
+    }
+    let scores = |run: &Path| -> Vec<(String, f64)> {
+        let mut reader = csv::Reader::from_path(run.join("eval/fields.csv")).unwrap();
+        reader
+            .records()
+            .map(|r| {
+                let r = r.unwrap();
+                (
+                    format!("{} {} {}", &r[0], &r[1], &r[2]),
+                    r[3].parse().unwrap(),
+                )
+            })
+            .collect()
+    };
+    let (a, b) = (scores(&cpu), scores(&gpu));
+    assert_eq!(a.len(), b.len());
+    // each score's difference over its tolerance
+    let mut worst_score = (0f64, String::new());
+    for ((key, u), (other, v)) in a.iter().zip(&b) {
+        assert_eq!(key, other);
+        let d = (u - v).abs() / (SCORE_TOL * u.abs().max(1.0));
+        assert!(d.is_finite(), "{key}: {u} vs {v}");
+        if d > worst_score.0 {
+            worst_score = (d, format!("{key}: {u} vs {v}"));
+        }
+    }
+    eprintln!(
+        "scores: {} rows, the largest difference {:.2} of its tolerance ({})",
+        a.len(),
+        worst_score.0,
+        worst_score.1
+    );
+    assert!(worst_loss <= LOSS_TOL, "losses differ by {worst_loss:.1e}");
+    assert!(worst_score.0 <= 1.0, "{}", worst_score.1);
+}
+
+/// Tolerances of [`fieldprobe_on_wgpu_matches_the_cpu`]: training losses to 1e-4 relative
+/// (measured: 1e-6); the report's scores to 5e-3, absolute for those within ±1 (correlations,
+/// IoUs), relative for larger ones (angles in degrees, end-point errors in pixels). After three
+/// steps the maps are nearly flat, so a correlation near 0 carries rounding further (measured:
+/// 8e-4 on a Pearson r of 0.02), and a contact IoU counts thresholded pixels, so rounding that
+/// moves a pixel across the threshold moves it by a step (measured: 4e-4 on an IoU of 0.04).
+const LOSS_TOL: f64 = 1e-4;
+const SCORE_TOL: f64 = 5e-3;
+
+/// A device the build lacks is a one-line error of train and eval alike, before anything is
+/// read or written.
+#[test]
+fn a_device_fieldprobe_cannot_use_is_a_one_line_error() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    let empty = dir.join("empty");
+    let eval = |device: &[&str]| {
+        let mut args = vec![
+            "fieldprobe",
+            "eval",
+            "--run",
+            empty.to_str().unwrap(),
+            "--data",
+            empty.to_str().unwrap(),
+        ];
+        args.extend_from_slice(device);
+        sparsh(&args)
+    };
+    #[cfg(not(feature = "cuda"))]
+    {
+        assert_user_error(
+            &train_on(dir, "f.toml", &empty, "r", "cuda"),
+            "--features cuda",
+        );
+        assert_user_error(&eval(&["--device", "cuda"]), "--features cuda");
+    }
+    assert_user_error(&eval(&["--devices", "0,1"]), "one device");
+    assert!(!dir.join("r").exists());
 }

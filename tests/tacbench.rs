@@ -1,10 +1,11 @@
 //! `sparsh tacbench` end to end on a small generated dataset: every task, every kind of
-//! encoder row, the report files, resume, and one-line errors for bad configs.
+//! encoder row, the report files, resume, one-line errors for bad configs and devices, and the
+//! same units on wgpu as on the CPU.
 
 use std::path::{Path, PathBuf};
 
 mod common;
-use common::{RECIPE, assert_user_error, sparsh, stderr};
+use common::{RECIPE, assert_user_error, json_files, sparsh, stderr, wgpu_or_skip};
 
 /// Two families (the texture task's two classes), press-and-slide and twist, with held-out
 /// cylinders: force, slip, pose and grasp labels on every frame.
@@ -287,4 +288,145 @@ fn bad_tacbench_configs_fail_on_one_line() {
         &run("nodata", &config(&[("force", "nowhere")], "[1.0]")),
         "nowhere",
     );
+}
+
+/// Numbers of a JSON value, depth first.
+fn numbers(v: &serde_json::Value, out: &mut Vec<f64>) {
+    match v {
+        serde_json::Value::Number(n) => out.push(n.as_f64().unwrap()),
+        serde_json::Value::Array(a) => a.iter().for_each(|x| numbers(x, out)),
+        serde_json::Value::Object(o) => o.values().for_each(|x| numbers(x, out)),
+        _ => {}
+    }
+}
+
+/// The largest |a − b| of two equally shaped lists of numbers.
+fn worst(a: &serde_json::Value, b: &serde_json::Value) -> f64 {
+    let (mut x, mut y) = (Vec::new(), Vec::new());
+    numbers(a, &mut x);
+    numbers(b, &mut y);
+    assert_eq!(x.len(), y.len());
+    x.iter().zip(&y).fold(0.0, |m, (u, v)| m.max((u - v).abs()))
+}
+
+/// `--device wgpu` (Mesa's lavapipe here, a software Vulkan driver) records the CPU's units
+/// for every kind of row (pretrained and random encoders, raw patches, end to end): each
+/// encoder and head drawn on the CPU under its seed and moved, so the runs differ only by
+/// floating-point rounding.
+#[test]
+fn tacbench_on_wgpu_records_the_cpu_units() {
+    if !wgpu_or_skip() {
+        return;
+    }
+    let tmp = tempfile::tempdir().unwrap();
+    setup(tmp.path());
+    // one random draw (a pretrained encoder takes the same path), the raw patches and the ViT
+    // trained end to end, on a sample every 8 frames: lavapipe is some 10× slower than the CPU
+    let cfg = tmp.path().join("bench.toml");
+    let text = config(&[("force", "data")], "[1.0]")
+        .replacen(
+            "[[encoder]]\nname = \"weights\"\nrecipe = \"recipe.toml\"\nweights = \"weights.safetensors\"\n",
+            "",
+            1,
+        )
+        .replace("draws = 2", "draws = 1")
+        .replace("frame_stride = 2", "frame_stride = 8");
+    assert!(!text.contains("[[encoder]]"));
+    std::fs::write(&cfg, text).unwrap();
+    let run_on = |device: &str| {
+        let out_dir = tmp.path().join(device);
+        let t0 = std::time::Instant::now();
+        let out = sparsh(&[
+            "tacbench",
+            "--config",
+            cfg.to_str().unwrap(),
+            "--out",
+            out_dir.to_str().unwrap(),
+            "--device",
+            device,
+        ]);
+        assert!(out.status.success(), "{device}: {}", stderr(&out));
+        eprintln!("{device}: {:.1} s", t0.elapsed().as_secs_f64());
+        out_dir
+    };
+    let (cpu, gpu) = (run_on("cpu"), run_on("wgpu"));
+    let units = json_files(&cpu.join("units"));
+    assert_eq!(units, json_files(&gpu.join("units")));
+    assert_eq!(units.len(), 3, "3 encoders × 1 budget: {units:?}");
+    let read = |dir: &Path, unit: &Path| -> serde_json::Value {
+        serde_json::from_str(&std::fs::read_to_string(dir.join("units").join(unit)).unwrap())
+            .unwrap()
+    };
+    let (mut preds, mut curves) = (0f64, 0f64);
+    for unit in &units {
+        let (a, b) = (read(&cpu, unit), read(&gpu, unit));
+        let name = unit.display();
+        assert_eq!(a["best_epoch"], b["best_epoch"], "{name}: epoch chosen");
+        let p = worst(&a["test_preds"], &b["test_preds"]);
+        let c = worst(&a["val_curve"], &b["val_curve"]);
+        eprintln!("{name}: predictions differ by up to {p:.2e} N, validation RMSE {c:.2e} mN");
+        (preds, curves) = (preds.max(p), curves.max(c));
+    }
+    assert!(preds <= PRED_TOL_N, "predictions differ by {preds:.2e} N");
+    assert!(
+        curves <= CURVE_TOL_MN,
+        "validation RMSE differs by {curves:.2e} mN"
+    );
+}
+
+/// Tolerances of [`tacbench_on_wgpu_records_the_cpu_units`]. Predicted forces are a few newtons
+/// and their validation RMSE hundreds to thousands of mN; two epochs of training carry the
+/// backends' rounding (sums in another order) to 1.9 mN in a prediction and 0.25 mN in a
+/// validation RMSE here (2.7 and 1.7 mN in a `--quick` run of two tasks; lavapipe), so 10 mN and
+/// 5 mN bound rounding, not another model.
+const PRED_TOL_N: f64 = 1e-2;
+const CURVE_TOL_MN: f64 = 5.0;
+
+/// A device the build or the machine lacks, or several devices for a command that computes on
+/// one, is refused on one line before anything is read or written.
+#[test]
+fn a_device_tacbench_cannot_use_is_a_one_line_error() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out_dir = tmp.path().join("run");
+    let run = |device: &[&str]| {
+        let mut args = vec![
+            "tacbench",
+            "--config",
+            "missing.toml",
+            "--out",
+            out_dir.to_str().unwrap(),
+        ];
+        args.extend_from_slice(device);
+        sparsh(&args)
+    };
+    #[cfg(not(feature = "cuda"))]
+    assert_user_error(&run(&["--device", "cuda"]), "--features cuda");
+    // no ninth adapter here; a machine without any says so instead (with a runtime directory:
+    // without one Mesa's Vulkan drivers print their own complaint about it)
+    let runtime = tmp.path().join("xdg");
+    std::fs::create_dir(&runtime).unwrap();
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_sparsh"))
+        .args([
+            "tacbench",
+            "--config",
+            "missing.toml",
+            "--out",
+            out_dir.to_str().unwrap(),
+            "--device",
+            "wgpu",
+            "--devices",
+            "9",
+        ])
+        .env("XDG_RUNTIME_DIR", &runtime)
+        .output()
+        .unwrap();
+    let err = stderr(&out);
+    assert!(
+        err.contains("device 9 does not exist") || err.contains("no wgpu adapter"),
+        "{err}"
+    );
+    assert_user_error(&out, "--device");
+    assert_user_error(&run(&["--devices", "0,1"]), "one device");
+    assert_user_error(&run(&["--devices", "x"]), "not a device index");
+    assert!(!out_dir.exists());
 }

@@ -121,3 +121,43 @@ split = "test"
 kind = "press_slide"
 depth_mm = [0.3, 0.8]
 "#;
+
+/// Whether this machine has a wgpu adapter for `--device wgpu` (Mesa's lavapipe counts). Without
+/// one the caller skips, with the reason printed, unless SPARSH_REQUIRE_GPU=1 (CI sets it),
+/// where this panics.
+#[allow(dead_code)] // the learned commands' tests only
+pub fn wgpu_or_skip() -> bool {
+    use sparsh_ssl::device::{DeviceKind, Devices};
+    match Devices::choose(DeviceKind::Wgpu, &[]) {
+        Ok(d) => {
+            eprintln!("wgpu device: {}", d.names[0]);
+            true
+        }
+        Err(e) if std::env::var("SPARSH_REQUIRE_GPU").is_ok_and(|v| v == "1") => {
+            panic!("SPARSH_REQUIRE_GPU=1 and {e}")
+        }
+        Err(e) => {
+            eprintln!("skipped: {e}");
+            false
+        }
+    }
+}
+
+/// Every `*.json` file under `dir`, as paths relative to it, sorted.
+#[allow(dead_code)] // the learned commands' tests only
+pub fn json_files(dir: &Path) -> Vec<PathBuf> {
+    fn walk(root: &Path, dir: &Path, out: &mut Vec<PathBuf>) {
+        for entry in std::fs::read_dir(dir).unwrap() {
+            let path = entry.unwrap().path();
+            if path.is_dir() {
+                walk(root, &path, out);
+            } else if path.extension().is_some_and(|e| e == "json") {
+                out.push(path.strip_prefix(root).unwrap().to_path_buf());
+            }
+        }
+    }
+    let mut out = Vec::new();
+    walk(dir, dir, &mut out);
+    out.sort();
+    out
+}

@@ -118,7 +118,8 @@ impl RowStats {
 /// The input of a model for some rows, on a device.
 type Input<'a> = dyn Fn(&[usize], &Device) -> Tensor<3> + Sync + 'a;
 
-/// Trains the attentive probe (Sparsh's TacBench head, [`AttentiveProbe`]) on frozen `tokens`.
+/// Trains the attentive probe (Sparsh's TacBench head, [`AttentiveProbe`]) on frozen `tokens`,
+/// on `device` (the head drawn on the CPU under `opts.seed`, then moved).
 pub fn fit_frozen(
     tokens: &Tokens,
     samples: &[Sample],
@@ -126,6 +127,7 @@ pub fn fit_frozen(
     classes: usize,
     split: &Split,
     opts: FitOptions,
+    device: &Device,
 ) -> Fit {
     let [_, t, d] = tokens.dims;
     let input = |rows: &[usize], device: &Device| {
@@ -135,8 +137,7 @@ pub fn fit_frozen(
             .collect();
         Tensor::<1>::from_floats(x.as_slice(), device).reshape([rows.len(), t, d])
     };
-    let device = Device::flex().autodiff();
-    let probe = new_probe(d, head, classes, opts.seed, &device);
+    let probe = new_probe(d, head, classes, opts.seed, &Device::flex().autodiff());
     fit(
         probe,
         &input,
@@ -146,6 +147,7 @@ pub fn fit_frozen(
         classes,
         split,
         opts,
+        device,
     )
 }
 
@@ -160,7 +162,9 @@ pub struct EndToEnd {
 
 /// Trains `encoder` (a fresh draw) together with the attentive probe on the images of the
 /// training rows: the end-to-end baseline of the same capacity. `images` assembles the
-/// unaugmented input batch of some rows.
+/// unaugmented input batch of some rows. Trained on `device`; `encoder` and the head are drawn
+/// on the CPU (the head under `opts.seed`) and moved.
+#[allow(clippy::too_many_arguments)]
 pub fn fit_end_to_end(
     encoder: Vit,
     images: &(dyn Fn(&[usize]) -> HostBatch + Sync),
@@ -169,10 +173,10 @@ pub fn fit_end_to_end(
     classes: usize,
     split: &Split,
     opts: FitOptions,
+    device: &Device,
 ) -> Fit {
-    let device = Device::flex().autodiff();
     let d = encoder.dim();
-    let probe = new_probe(d, head, classes, opts.seed, &device);
+    let probe = new_probe(d, head, classes, opts.seed, &Device::flex().autodiff());
     let model = EndToEnd {
         encoder,
         head: probe,
@@ -193,7 +197,9 @@ pub fn fit_end_to_end(
         let tokens = m.encoder.forward(x.reshape([n, f, c, h, w]), None).patches;
         m.head.forward(tokens)
     };
-    fit(model, &input, &forward, samples, head, classes, split, opts)
+    fit(
+        model, &input, &forward, samples, head, classes, split, opts, device,
+    )
 }
 
 /// A fresh attentive probe for `head` on `d`-wide tokens, drawn from `seed`, its output bias
@@ -220,10 +226,10 @@ fn heads_for(d: usize) -> usize {
     if d.is_multiple_of(64) { d / 64 } else { 1 }
 }
 
-/// The training loop both fits share.
+/// The training loop both fits share, on `device` (`model` is moved there).
 #[allow(clippy::too_many_arguments)]
 fn fit<M: Module + Clone>(
-    mut model: M,
+    model: M,
     input: &Input<'_>,
     forward: &(dyn Fn(&M, Tensor<3>) -> Tensor<2> + Sync),
     samples: &[Sample],
@@ -231,8 +237,11 @@ fn fit<M: Module + Clone>(
     classes: usize,
     split: &Split,
     opts: FitOptions,
+    device: &Device,
 ) -> Fit {
-    let device = Device::flex().autodiff();
+    let plain = device.clone().inner();
+    let device = device.clone().inner().autodiff();
+    let mut model = crate::on_device(model, &device);
     let width = head.target_width(classes);
     let targets = |rows: &[usize]| {
         let t: Vec<f32> = rows
@@ -243,7 +252,6 @@ fn fit<M: Module + Clone>(
     };
     let metric: Metric = head.kind.metrics()[0];
     let predict = |m: &M, rows: &[usize]| -> Vec<Vec<f64>> {
-        let plain = Device::flex();
         let valid = m.valid();
         let mut out = Vec::with_capacity(rows.len());
         for chunk in rows.chunks(64) {
@@ -372,7 +380,7 @@ mod tests {
             tokens.standardize(&split.train);
             let refs: Vec<&Sample> = split.train.iter().map(|&i| &samples[i]).collect();
             let head = Head::new(TaskKind::Force, 0, [4.0, 4.0, 5.0], &refs);
-            let fit = fit_frozen(tokens, samples, &head, 0, &split, opts);
+            let fit = fit_frozen(tokens, samples, &head, 0, &split, opts, &Device::flex());
             let mut preds = vec![Vec::new(); samples.len()];
             for (&i, p) in split.test.iter().zip(&fit.test_preds) {
                 preds[i] = p.clone();

@@ -231,6 +231,9 @@ pub struct RunOptions {
     pub quick: bool,
     /// Train nothing: report the units already recorded (tasks without any are left out).
     pub report_only: bool,
+    /// Where the encoders run and the heads train (a device without autodiff; the CPU's
+    /// `Device::flex()` by default). Every model is drawn on the CPU under its seed and moved.
+    pub device: Device,
 }
 
 /// The randomly initialised encoder a run of `recipe` with `seed` starts from.
@@ -526,6 +529,7 @@ pub fn run(
                     enc.vit.as_ref().expect("loaded"),
                     &images,
                     picks.len(),
+                    &opts.device,
                 )),
                 EncoderKind::Pixels => Some(patch_tokens_all(
                     &images,
@@ -561,6 +565,7 @@ pub fn run(
                             lr: cfg.probe.lr,
                             seed: fit_seed,
                         },
+                        &opts.device,
                     ),
                     (None, _) => {
                         let b = cfg
@@ -585,6 +590,7 @@ pub fn run(
                                 lr: b.end_to_end_lr,
                                 seed: fit_seed,
                             },
+                            &opts.device,
                         )
                     }
                 };
@@ -674,10 +680,15 @@ pub(crate) fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), Error> {
     })
 }
 
-/// The frozen encoder's normalized patch tokens for every sample.
-fn encode_all(vit: &Vit, images: &dyn Fn(&[usize]) -> HostBatch, n: usize) -> Tokens {
-    let enc = vit.clone().valid();
-    let device = Device::flex();
+/// The frozen encoder's normalized patch tokens for every sample, computed on `device`.
+fn encode_all(
+    vit: &Vit,
+    images: &dyn Fn(&[usize]) -> HostBatch,
+    n: usize,
+    device: &Device,
+) -> Tokens {
+    let device = device.clone().inner();
+    let enc = crate::on_device(vit.valid(), &device);
     let mut values = Vec::new();
     let mut dims = [0, 0, 0];
     let rows: Vec<usize> = (0..n).collect();

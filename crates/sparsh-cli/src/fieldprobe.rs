@@ -4,13 +4,21 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{Result, bail};
+use sparsh_ssl::device::Devices;
 
 fn log(line: &str) {
     eprintln!("{line}");
 }
 
-/// Trains the decoders of a run into `out` (a new or empty directory).
-pub fn train(config: &Path, encoder: &Path, data: &Path, out: &Path, quick: bool) -> Result<()> {
+/// Trains the decoders of a run into `out` (a new or empty directory), on `device`.
+pub fn train(
+    config: &Path,
+    encoder: &Path,
+    data: &Path,
+    out: &Path,
+    quick: bool,
+    device: &Devices,
+) -> Result<()> {
     if out.join("run.json").exists() {
         bail!(
             "{}: holds a field-probe run already (choose another --out)",
@@ -18,7 +26,15 @@ pub fn train(config: &Path, encoder: &Path, data: &Path, out: &Path, quick: bool
         );
     }
     let start = Instant::now();
-    let record = sparsh_bench::fields::run::train_run(config, encoder, data, out, quick, &log)?;
+    let record = sparsh_bench::fields::run::train_run(
+        config,
+        encoder,
+        data,
+        out,
+        quick,
+        device.main(),
+        &log,
+    )?;
     println!(
         "{}: {} decoders trained on {} pairs in {:.0} s; score them with: sparsh fieldprobe eval --run {} --data {}",
         out.display(),
@@ -31,10 +47,10 @@ pub fn train(config: &Path, encoder: &Path, data: &Path, out: &Path, quick: bool
     Ok(())
 }
 
-/// Scores a run and prints the Markdown report.
-pub fn eval(run: &Path, data: &Path, packs: &[PathBuf]) -> Result<()> {
+/// Scores a run on `device` and prints the Markdown report.
+pub fn eval(run: &Path, data: &Path, packs: &[PathBuf], device: &Devices) -> Result<()> {
     let start = Instant::now();
-    let summary = sparsh_bench::fields::run::eval_run(run, data, packs, &log)?;
+    let summary = sparsh_bench::fields::run::eval_run(run, data, packs, device.main(), &log)?;
     println!("{}", summary.markdown);
     eprintln!(
         "{}: scored in {:.0} s",

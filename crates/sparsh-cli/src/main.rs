@@ -44,24 +44,47 @@ struct DeviceArgs {
     /// adapter, else the CPU).
     #[arg(long, default_value = "cpu", value_parser = clap::value_parser!(sparsh_ssl::device::DeviceKind))]
     device: sparsh_ssl::device::DeviceKind,
-    /// Data-parallel over these devices of the --device kind (indices as `sparsh devices` lists
-    /// them, e.g. 0,1): pretrain splits every batch across them and averages their gradients on
-    /// the first; probe computes on the first. Default: the kind's first device.
+    /// Which devices of the --device kind (indices as `sparsh devices` lists them, e.g. 0,1):
+    /// pretrain splits every batch across them (data-parallel) and averages their gradients on
+    /// the first; probe computes on the first; tacbench and fieldprobe take one index. Default:
+    /// the kind's first device.
     #[arg(long, value_name = "I,J,…")]
     devices: Option<String>,
 }
 
 impl DeviceArgs {
+    /// The devices asked for, named on stderr unless they are the one CPU.
     fn choose(&self) -> Result<sparsh_ssl::device::Devices> {
+        let devices = self.pick()?;
+        Self::announce(&devices);
+        Ok(devices)
+    }
+
+    /// The one device of a command that computes on one (`command` names it in the error when
+    /// --devices lists several).
+    fn choose_one(&self, command: &str) -> Result<sparsh_ssl::device::Devices> {
+        let devices = self.pick()?;
+        anyhow::ensure!(
+            devices.devices.len() == 1,
+            "--devices: {command} computes on one device; give one index, not {}",
+            devices.devices.len()
+        );
+        Self::announce(&devices);
+        Ok(devices)
+    }
+
+    fn pick(&self) -> Result<sparsh_ssl::device::Devices> {
         let indices = match &self.devices {
             Some(s) => sparsh_ssl::device::parse_indices(s).map_err(anyhow::Error::msg)?,
             None => Vec::new(),
         };
-        let devices = sparsh_ssl::device::Devices::choose(self.device, &indices)?;
+        Ok(sparsh_ssl::device::Devices::choose(self.device, &indices)?)
+    }
+
+    fn announce(devices: &sparsh_ssl::device::Devices) {
         if devices.kind != sparsh_ssl::device::DeviceKind::Cpu || devices.devices.len() > 1 {
             eprintln!("device: {}", devices.names.join(", "));
         }
-        Ok(devices)
     }
 }
 
@@ -372,6 +395,8 @@ enum Command {
         /// Train nothing: rewrite the report of the run in --out from the units it finished.
         #[arg(long, conflicts_with = "resume")]
         report_only: bool,
+        #[command(flatten)]
+        device: DeviceArgs,
     },
     /// Sim-to-real ablation: train on synthetic frames of each simulator variant, score the
     /// contact circle on real frames (ablations/*.toml).
@@ -418,6 +443,8 @@ enum FieldprobeAction {
         /// Smoke run: 3 steps per decoder, one random draw, 24 training pairs.
         #[arg(long)]
         quick: bool,
+        #[command(flatten)]
+        device: DeviceArgs,
     },
     /// Score a run's decoders, the classical baselines and the markers on the held-out
     /// sequences against the ground-truth fields; writes RUN/eval/fields.csv, fields.md and
@@ -433,6 +460,8 @@ enum FieldprobeAction {
         /// may be given several times.
         #[arg(long)]
         pack: Vec<PathBuf>,
+        #[command(flatten)]
+        device: DeviceArgs,
     },
 }
 
@@ -669,7 +698,15 @@ fn run(cli: Cli) -> Result<()> {
             quick,
             resume,
             report_only,
-        } => tacbench::tacbench(&config, &out, quick, resume, report_only),
+            device,
+        } => tacbench::tacbench(
+            &config,
+            &out,
+            quick,
+            resume,
+            report_only,
+            &device.choose_one("tacbench")?,
+        ),
         Command::Ablate {
             config,
             out,
@@ -683,8 +720,21 @@ fn run(cli: Cli) -> Result<()> {
                 data,
                 out,
                 quick,
-            } => fieldprobe::train(&config, &encoder, &data, &out, quick),
-            FieldprobeAction::Eval { run, data, pack } => fieldprobe::eval(&run, &data, &pack),
+                device,
+            } => fieldprobe::train(
+                &config,
+                &encoder,
+                &data,
+                &out,
+                quick,
+                &device.choose_one("fieldprobe")?,
+            ),
+            FieldprobeAction::Eval {
+                run,
+                data,
+                pack,
+                device,
+            } => fieldprobe::eval(&run, &data, &pack, &device.choose_one("fieldprobe")?),
         },
     }
 }

@@ -8,16 +8,18 @@ use anyhow::{Context, Result, bail};
 use sha2::{Digest, Sha256};
 use sparsh_bench::config::{BenchConfig, TaskConfig};
 use sparsh_bench::run::{RunOptions, run};
+use sparsh_ssl::device::Devices;
 
 use crate::dataset::{DeviceArg, GenerateOptions, generate};
 
-/// Runs (or resumes) the benchmark of `config` into `out`.
+/// Runs (or resumes) the benchmark of `config` into `out`, its encoders and heads on `device`.
 pub fn tacbench(
     config: &Path,
     out: &Path,
     quick: bool,
     resume: bool,
     report_only: bool,
+    device: &Devices,
 ) -> Result<()> {
     let cfg = BenchConfig::load(config)?;
     // the pretrained encoders load and fit their recipes before anything is written
@@ -108,6 +110,7 @@ pub fn tacbench(
         resume,
         quick,
         report_only,
+        device: device.main().clone(),
     };
     let budgets = if quick {
         vec![1.0, 0.1]

@@ -25,11 +25,18 @@ pub fn hook_blocks(depth: usize) -> Vec<usize> {
         .collect()
 }
 
-/// Bilinear resize of `[batch, channels, h, w]` to `size`.
+/// Bilinear resize of `[batch, channels, h, w]` to `size` (half-pixel centres, PyTorch's
+/// `align_corners=False`). On burn's CPU backend this is its interpolation kernel; burn's GPU
+/// backends (wgpu, CUDA) have no backward for bilinear interpolation, so on them the same
+/// weights are applied as two matrix products ([`resize_by_matrices`]), which agree with the
+/// kernel to rounding and train on every backend.
 pub fn resize(x: Tensor<4>, size: [usize; 2]) -> Tensor<4> {
     let [_, _, h, w] = x.dims();
     if [h, w] == size {
         return x;
+    }
+    if x.device() != Device::flex() {
+        return resize_by_matrices(x, size);
     }
     interpolate(
         x,
@@ -37,6 +44,38 @@ pub fn resize(x: Tensor<4>, size: [usize; 2]) -> Tensor<4> {
             .with_align_corners(false)
             .with_output_size(size),
     )
+}
+
+/// [`resize`] as `A_h · x · A_wᵀ`, with `A` the bilinear weights of each axis: differentiable
+/// on every backend.
+pub fn resize_by_matrices(x: Tensor<4>, size: [usize; 2]) -> Tensor<4> {
+    let [b, c, h, w] = x.dims();
+    let device = x.device();
+    let ah = Tensor::<1>::from_floats(bilinear_weights(h, size[0]).as_slice(), &device)
+        .reshape([1, 1, size[0], h])
+        .expand([b, c, size[0], h]);
+    let awt = Tensor::<1>::from_floats(bilinear_weights(w, size[1]).as_slice(), &device)
+        .reshape([1, 1, size[1], w])
+        .swap_dims(2, 3)
+        .expand([b, c, w, size[1]]);
+    ah.matmul(x).matmul(awt)
+}
+
+/// The `[to, from]` matrix (row-major) of linear resampling from `from` samples to `to`, half-pixel
+/// centres, the source coordinate clamped to the first sample and the neighbour to the last (as
+/// burn's and PyTorch's bilinear interpolation).
+fn bilinear_weights(from: usize, to: usize) -> Vec<f32> {
+    let ratio = from as f64 / to as f64;
+    let mut a = vec![0.0f32; to * from];
+    for o in 0..to {
+        let src = (o as f64 + 0.5) * ratio - 0.5;
+        let low = src.floor().max(0.0) as usize;
+        let high = (low + 1).min(from - 1);
+        let t = (src - low as f64).max(0.0) as f32;
+        a[o * from + low] += 1.0 - t;
+        a[o * from + high] += t;
+    }
+    a
 }
 
 fn conv(cin: usize, cout: usize, k: usize, device: &Device) -> Conv2d {
@@ -265,6 +304,42 @@ mod tests {
         assert_eq!(hook_blocks(12), vec![2, 5, 8, 11]);
         assert_eq!(hook_blocks(6), vec![1, 2, 4, 5]);
         assert_eq!(hook_blocks(4), vec![0, 1, 2, 3]);
+    }
+
+    /// The matrix form of the bilinear resize (the GPUs' path) gives the CPU kernel's values
+    /// and gradients, up and down, odd sizes included.
+    #[test]
+    fn the_matrix_resize_is_the_bilinear_kernel() {
+        let device = Device::flex().autodiff();
+        for (from, to) in [([3, 2], [12, 9]), ([12, 9], [96, 72]), ([7, 5], [3, 4])] {
+            let x = Tensor::<4>::random(
+                [2, 3, from[0], from[1]],
+                burn::tensor::Distribution::Default,
+                &device,
+            )
+            .require_grad();
+            let r = Tensor::<4>::random(
+                [2, 3, to[0], to[1]],
+                burn::tensor::Distribution::Default,
+                &device,
+            );
+            let values_and_grad = |y: Tensor<4>| {
+                let v: Vec<f32> = y.clone().into_data().try_to_vec().unwrap();
+                let g = (y * r.clone()).sum().backward();
+                let g: Vec<f32> = x.grad(&g).unwrap().into_data().try_to_vec().unwrap();
+                (v, g)
+            };
+            let (kv, kg) = values_and_grad(resize(x.clone(), to));
+            let (mv, mg) = values_and_grad(resize_by_matrices(x.clone(), to));
+            // the largest difference relative to the largest value: sums in another order
+            let worst = |a: &[f32], b: &[f32]| {
+                let scale = a.iter().fold(0f32, |m, u| m.max(u.abs()));
+                a.iter().zip(b).fold(0f32, |m, (u, v)| m.max((u - v).abs())) / scale
+            };
+            let (v, g) = (worst(&kv, &mv), worst(&kg, &mg));
+            assert!(v < 1e-6, "{from:?} → {to:?}: values differ by {v:.1e}");
+            assert!(g < 1e-6, "{from:?} → {to:?}: gradients differ by {g:.1e}");
+        }
     }
 
     /// An odd token grid (9 columns) still decodes to the input size, in range.

@@ -282,13 +282,15 @@ fn load_pairs(
     Ok(pairs)
 }
 
-/// `sparsh fieldprobe train`.
+/// `sparsh fieldprobe train`: the encoders run and the decoders train on `device` (every model
+/// drawn on the CPU under its seed and moved; the saved decoders load on any device).
 pub fn train_run(
     config_path: &Path,
     encoder: &Path,
     data: &Path,
     out: &Path,
     quick: bool,
+    device: &Device,
     log: &dyn Fn(&str),
 ) -> Result<RunRecord, Error> {
     let cfg = FieldProbeConfig::load(config_path)?;
@@ -332,9 +334,9 @@ pub fn train_run(
         let t0 = Instant::now();
         let mut tokens = match random_seed {
             None => pretrained_tokens
-                .get_or_insert_with(|| encode_hooks(&pretrained, &pairs, &pairs.train))
+                .get_or_insert_with(|| encode_hooks(&pretrained, &pairs, &pairs.train, device))
                 .clone(),
-            Some(k) => encode_hooks(&random_encoder(&recipe, k)?, &pairs, &pairs.train),
+            Some(k) => encode_hooks(&random_encoder(&recipe, k)?, &pairs, &pairs.train, device),
         };
         let stats = tokens.stats();
         tokens.standardize(&stats);
@@ -353,7 +355,7 @@ pub fn train_run(
                 pairs: &pairs.train,
             },
         };
-        let (model, curve) = train(&tokens, signal, &dec_cfg, opts, &|step, loss| {
+        let (model, curve) = train(&tokens, signal, &dec_cfg, opts, device, &|step, loss| {
             if step % every == 0 || step + 1 == steps {
                 log(&format!(
                     "  {name}: step {}/{steps}, loss {loss:.5}",
@@ -575,11 +577,12 @@ pub struct EvalSummary {
     pub markdown: String,
 }
 
-/// `sparsh fieldprobe eval`.
+/// `sparsh fieldprobe eval`: the encoders and decoders run on `device`.
 pub fn eval_run(
     run: &Path,
     data: &Path,
     packs: &[PathBuf],
+    device: &Device,
     log: &dyn Fn(&str),
 ) -> Result<EvalSummary, Error> {
     let record = read_run(run)?;
@@ -640,9 +643,10 @@ pub fn eval_run(
     let mut models: Vec<Trained> = Vec::new();
     for d in &record.decoders {
         let vit = match d.random_seed {
-            None => pretrained.clone(),
-            Some(k) => random_encoder(&recipe, k)?,
+            None => pretrained.valid(),
+            Some(k) => random_encoder(&recipe, k)?.valid(),
         };
+        let vit = crate::on_device(vit, device);
         let path = run.join("decoders").join(&d.file);
         let model = FieldModel {
             decoder: dec_cfg.init(&Device::flex()),
@@ -650,10 +654,11 @@ pub fn eval_run(
         }
         .try_load_file(&path)
         .map_err(|e| Error::file(&path, format!("{e:?}")))?;
+        let model = crate::on_device(model, device);
         let stats = read_stats(run, &d.name)?;
         let t0 = Instant::now();
         let tokens_of = |list: &[Pair]| {
-            let mut t = encode_hooks(&vit, &pairs, list);
+            let mut t = encode_hooks(&vit, &pairs, list, device);
             t.standardize(&stats);
             t
         };
@@ -794,6 +799,7 @@ pub fn eval_run(
             &thresholds,
             intensity_thr,
             [h, w],
+            device,
         )?);
     }
     write_atomic(&out.join("fields.md"), markdown.as_bytes())?;
@@ -966,6 +972,7 @@ fn pack_report(
     thresholds: &[(String, f32)],
     intensity_thr: f32,
     size: [usize; 2],
+    device: &Device,
 ) -> Result<String, Error> {
     let pack = sparsh_optics::pack::CalibrationPack::read(pack_path)
         .map_err(|e| Error::file(pack_path, format!("{}: {}", e.field, e.message)))?;
@@ -980,7 +987,7 @@ fn pack_report(
     let n = h * w;
     // one pair per frame: the contact frame against the no-contact frame
     let input = |vit: &Vit| {
-        encode_inputs(vit, size, frames.len(), |rows| {
+        encode_inputs(vit, size, frames.len(), device, |rows| {
             frames[rows]
                 .iter()
                 .flat_map(|f| f.iter().chain(rest.iter()).copied())

@@ -59,10 +59,10 @@ impl HookTokens {
     }
 }
 
-/// Runs the frozen encoder over the pairs and keeps the tokens of its hooked blocks
+/// Runs the frozen encoder over the pairs on `device` and keeps the tokens of its hooked blocks
 /// ([`hook_blocks`]).
-pub fn encode_hooks(vit: &Vit, data: &FramePairs, pairs: &[Pair]) -> HookTokens {
-    encode_inputs(vit, data.size(), pairs.len(), |rows| {
+pub fn encode_hooks(vit: &Vit, data: &FramePairs, pairs: &[Pair], device: &Device) -> HookTokens {
+    encode_inputs(vit, data.size(), pairs.len(), device, |rows| {
         pairs[rows]
             .iter()
             .flat_map(|&p| {
@@ -75,16 +75,18 @@ pub fn encode_hooks(vit: &Vit, data: &FramePairs, pairs: &[Pair]) -> HookTokens 
 
 /// Runs the frozen encoder over `n` samples of `size` (`[height, width]`), whose inputs
 /// `I_t ⊕ I_{t−k}` (`[6, height, width]` each, concatenated) `input` assembles for a range of
-/// samples, and keeps the tokens of its hooked blocks ([`hook_blocks`]).
+/// samples, and keeps the tokens of its hooked blocks ([`hook_blocks`]). Computed on `device`
+/// (the encoder is moved there if it lives elsewhere).
 pub fn encode_inputs(
     vit: &Vit,
     size: [usize; 2],
     n: usize,
+    device: &Device,
     input: impl Fn(std::ops::Range<usize>) -> Vec<f32>,
 ) -> HookTokens {
     // an encoder drawn on the autodiff device would record (and keep) every activation
-    let vit = vit.clone().valid();
-    let device = Device::flex();
+    let device = device.clone().inner();
+    let vit = crate::on_device(vit.valid(), &device);
     let hooks = hook_blocks(vit.blocks.len());
     let [h, w] = size;
     let (mut values, mut dims) = (Vec::new(), [n, hooks.len(), 0, vit.dim()]);
@@ -194,19 +196,24 @@ pub enum Signal<'a> {
     Fields(&'a Targets),
 }
 
-/// Trains a decoder on `tokens` from `signal`. Returns the model and the loss of every step.
+/// Trains a decoder on `tokens` from `signal`, on `device` (the model drawn on the CPU under
+/// `opts.seed` and moved). Returns the model (on `device`, without autodiff) and the loss of
+/// every step.
 pub fn train(
     tokens: &HookTokens,
     signal: Signal<'_>,
     config: &FieldDecoderConfig,
     opts: TrainOptions,
+    device: &Device,
     progress: &dyn Fn(usize, f64),
 ) -> (FieldModel, Vec<f64>) {
-    let device = Device::flex().autodiff();
-    let mut model = seeded_module(&device, opts.seed, || FieldModel {
-        decoder: config.init(&device),
-        shading: Shading::new(&device),
+    let cpu = Device::flex().autodiff();
+    let model = seeded_module(&cpu, opts.seed, || FieldModel {
+        decoder: config.init(&cpu),
+        shading: Shading::new(&cpu),
     });
+    let device = device.clone().inner().autodiff();
+    let mut model = crate::on_device(model, &device);
     let [h, w] = config.img_size;
     let frames = |data: &FramePairs, pairs: &[Pair], rows: &[usize], back: bool| {
         let v: Vec<f32> = rows
@@ -282,9 +289,12 @@ pub struct Prediction {
     pub flow: Vec<[f32; 2]>,
 }
 
-/// Predictions for every row of `tokens`.
+/// Predictions for every row of `tokens`, computed on the device `model` lives on.
 pub fn predict(model: &FieldModel, tokens: &HookTokens) -> Vec<Prediction> {
-    let device = Device::flex();
+    let device = model
+        .devices()
+        .first()
+        .map_or_else(Device::flex, |d| d.clone().inner());
     let rows: Vec<usize> = (0..tokens.dims[0]).collect();
     let mut out = Vec::with_capacity(rows.len());
     for chunk in rows.chunks(16) {
@@ -364,7 +374,14 @@ mod tests {
             seed: 0,
             weights: LossWeights::default(),
         };
-        let (model, curve) = train(&tokens, Signal::Fields(&targets), &cfg, opts, &|_, _| {});
+        let (model, curve) = train(
+            &tokens,
+            Signal::Fields(&targets),
+            &cfg,
+            opts,
+            &Device::flex(),
+            &|_, _| {},
+        );
         assert!(curve[curve.len() - 1] < 0.2 * curve[0], "{curve:?}");
         let preds = predict(&model, &tokens);
         let mut ious = Vec::new();
