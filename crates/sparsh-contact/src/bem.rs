@@ -10,15 +10,15 @@
 //! never changes the answer. Each frame starts from the previous one's solution.
 
 use std::collections::HashMap;
-use std::sync::Arc;
+use std::sync::{Arc, OnceLock};
 use std::time::Instant;
 
 use rayon::prelude::*;
-use sparsh_scene::{Gel, Grid};
+use sparsh_scene::{GapField, Gel, Grid};
 
 use crate::fft::{Conv, smooth_length};
 use crate::kernels::{Component, LayerCorrection, halfspace_cell};
-use crate::{ContactError, ContactInput, ContactSolver, Fields, NormalControl};
+use crate::{ContactError, ContactInput, ContactSolver, Fields, NextFrame, NormalControl};
 
 /// Iteration limits and tolerances of the boundary-element rungs.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -190,23 +190,98 @@ fn padded_to(grid: &Grid, core: Rect, multiple: usize) -> Rect {
 }
 
 /// Elastic half-space or bonded-layer boundary elements on a grid (see the module docs).
+///
+/// A frame's normal problem needs the last frame's pressures only, not its tractions, so given
+/// the next frame's gap ([`ContactSolver::solve_ahead`]) the next normal problem is solved beside
+/// this frame's tangential one. The two halves keep their own kernel caches and buffers.
 #[derive(Debug)]
 pub struct Bem {
+    model: Model,
+    normal_side: Side,
+    tangential_side: Side,
+    normal_work: NormalWork,
+    newton_work: NewtonWork,
+    history: Option<History>,
+    /// The next frame's normal problem, solved beside the last frame's tangential one.
+    ahead: Option<Ahead>,
+    stats: BemStats,
+}
+
+/// The rung on its grid: what both halves of a frame read.
+#[derive(Debug)]
+struct Model {
     name: &'static str,
     gel: Gel,
     grid: Grid,
     layer: Option<LayerCorrection>,
     options: BemOptions,
-    cache: HashMap<(usize, usize), Arc<Spectra>>,
     /// Influence coefficients of every offset on the grid, `[zz, xx, yy, xy]` (made on first
     /// use): the kernels of every window and spread.
-    grid_tables: Option<Arc<[Vec<f64>; 4]>>,
-    /// Kernel spectra of the spreads onto the whole grid, by padded size.
+    grid_tables: OnceLock<[Vec<f64>; 4]>,
+}
+
+/// Kernel spectra of one half of the frame's problem, by size.
+#[derive(Debug, Default)]
+struct Side {
+    /// Window (or patch) convolutions.
+    cache: HashMap<(usize, usize), Arc<Spectra>>,
+    /// Spreads onto the whole grid, by padded size.
     spread_cache: HashMap<(usize, usize), Arc<Spread>>,
-    normal_work: NormalWork,
-    newton_work: NewtonWork,
-    history: Option<History>,
-    stats: BemStats,
+    /// Seconds spent on kernel spectra of new sizes since the half's frame began.
+    kernel_s: f64,
+}
+
+/// A normal problem solved ahead, with the frame it was solved for.
+#[derive(Debug)]
+struct Ahead {
+    gap_mm: Vec<f64>,
+    normal: NormalControl,
+    solved: Result<Normal, ContactError>,
+}
+
+/// The previous frame's part in a normal problem.
+#[derive(Debug, Clone, Copy)]
+struct NormalPast<'a> {
+    pressure_kpa: &'a [f64],
+    /// The pressure of the frame before, if that frame had contact.
+    pressure_before_kpa: Option<&'a [f64]>,
+    offset_mm: f64,
+}
+
+/// One frame's normal problem.
+#[derive(Debug)]
+enum Normal {
+    /// Nothing touches: the path history ends.
+    Free,
+    Pressed(NormalFrame),
+}
+
+/// One frame's normal contact on the whole grid.
+#[derive(Debug)]
+struct NormalFrame {
+    /// The window it was solved on.
+    window: Rect,
+    pressure_kpa: Vec<f64>,
+    /// Surface displacement into the gel (mm).
+    uz_into_mm: Vec<f64>,
+    contact: Vec<bool>,
+    /// The rigid approach (mm).
+    offset_mm: f64,
+    load_controlled: bool,
+    convolutions: usize,
+    windows: usize,
+    normal_s: f64,
+    kernel_s: f64,
+}
+
+/// One frame's tangential contact on the whole grid.
+struct TangentialFrame {
+    traction_kpa: Pair,
+    u_tangential_mm: Pair,
+    slip: Vec<bool>,
+    convolutions: usize,
+    tangential_s: f64,
+    kernel_s: f64,
 }
 
 /// Kernel spectra of a spread: tractions on a patch to displacements on the whole grid.
@@ -275,18 +350,25 @@ struct NormalSolution {
 impl Bem {
     /// The elastic half-space rung (Love 1929 and Cerruti cell coefficients).
     pub fn halfspace(gel: Gel, grid: Grid) -> Bem {
-        Bem {
+        Bem::on(Model {
             name: "halfspace",
             gel,
             grid,
             layer: None,
             options: BemOptions::default(),
-            cache: HashMap::new(),
-            grid_tables: None,
-            spread_cache: HashMap::new(),
+            grid_tables: OnceLock::new(),
+        })
+    }
+
+    fn on(model: Model) -> Bem {
+        Bem {
+            model,
+            normal_side: Side::default(),
+            tangential_side: Side::default(),
             normal_work: NormalWork::default(),
             newton_work: NewtonWork::default(),
             history: None,
+            ahead: None,
             stats: BemStats::default(),
         }
     }
@@ -306,16 +388,20 @@ impl Bem {
             r_max_mm,
             step_mm,
         );
-        Bem {
+        Bem::on(Model {
             name: "layered",
+            gel,
+            grid,
             layer: Some(layer),
-            ..Bem::halfspace(gel, grid)
-        }
+            options: BemOptions::default(),
+            grid_tables: OnceLock::new(),
+        })
     }
 
     /// Replaces the iteration limits and tolerances.
     pub fn with_options(mut self, options: BemOptions) -> Bem {
-        self.options = options;
+        self.model.options = options;
+        self.ahead = None;
         self
     }
 
@@ -323,7 +409,67 @@ impl Bem {
     pub fn stats(&self) -> BemStats {
         self.stats
     }
+}
 
+impl Side {
+    /// The spread's kernel spectra for tractions on `patch` (cached by padded size).
+    fn spread(&mut self, model: &Model, patch: Rect) -> Arc<Spread> {
+        let (nx, ny) = (model.grid.nx, model.grid.ny);
+        let px = spread_length(nx, patch.i1.max(nx - patch.i0));
+        let py = spread_length(ny, patch.j1.max(ny - patch.j0));
+        if let Some(s) = self.spread_cache.get(&(px, py)) {
+            return s.clone();
+        }
+        let start = Instant::now();
+        let conv = Conv::padded((px / 2).min(nx), (py / 2).min(ny), px, py);
+        let [zz, xx, yy, xy] = kernel_spectra(&conv, model.grid_tables(), nx);
+        let spread = Arc::new(Spread {
+            conv,
+            zz,
+            xx,
+            yy,
+            xy,
+        });
+        self.spread_cache.insert((px, py), spread.clone());
+        self.kernel_s += start.elapsed().as_secs_f64();
+        spread
+    }
+
+    /// The kernel spectra of an `nx × ny` window (cached by size).
+    fn spectra(&mut self, model: &Model, nx: usize, ny: usize) -> Arc<Spectra> {
+        if let Some(s) = self.cache.get(&(nx, ny)) {
+            return s.clone();
+        }
+        let start = Instant::now();
+        // A window lies inside the grid, so its offsets are among the grid's.
+        let tables = model.grid_tables();
+        let conv = Conv::new(nx, ny);
+        let [zz, xx, yy, xy] = kernel_spectra(&conv, tables, model.grid.nx);
+        let tangential_lipschitz = (0..xx.len())
+            .map(|k| {
+                let (a, b, c) = (xx[k], yy[k], xy[k]);
+                let mid = 0.5 * (a + b);
+                let rad = (0.25 * (a - b) * (a - b) + c * c).sqrt();
+                (mid + rad).abs().max((mid - rad).abs())
+            })
+            .fold(0.0, f64::max);
+        let s = Arc::new(Spectra {
+            conv,
+            zz,
+            xx,
+            yy,
+            xy,
+            tangential_lipschitz,
+            self_xx_mm_per_kpa: tables[1][0],
+            self_yy_mm_per_kpa: tables[2][0],
+        });
+        self.cache.insert((nx, ny), s.clone());
+        self.kernel_s += start.elapsed().as_secs_f64();
+        s
+    }
+}
+
+impl Model {
     /// Influence coefficients of component `c` for the offsets (di, dj) in [0, nx) × [0, ny),
     /// row-major; the other signs follow from symmetry.
     fn table(&self, c: Component, nx: usize, ny: usize) -> Vec<f64> {
@@ -350,70 +496,11 @@ impl Bem {
 
     /// The coefficient tables `[zz, xx, yy, xy]` of every offset on the grid (made on first
     /// use): the kernels of every window and spread.
-    fn grid_tables(&mut self) -> Arc<[Vec<f64>; 4]> {
-        if let Some(t) = &self.grid_tables {
-            return t.clone();
-        }
-        let (nx, ny) = (self.grid.nx, self.grid.ny);
-        let t = Arc::new(COMPONENTS.map(|c| self.table(c, nx, ny)));
-        self.grid_tables = Some(t.clone());
-        t
-    }
-
-    /// The spread's kernel spectra for tractions on `patch` (cached by padded size).
-    fn spread(&mut self, patch: Rect) -> Arc<Spread> {
-        let (nx, ny) = (self.grid.nx, self.grid.ny);
-        let px = spread_length(nx, patch.i1.max(nx - patch.i0));
-        let py = spread_length(ny, patch.j1.max(ny - patch.j0));
-        if let Some(s) = self.spread_cache.get(&(px, py)) {
-            return s.clone();
-        }
-        let start = Instant::now();
-        let tables = self.grid_tables();
-        let conv = Conv::padded((px / 2).min(nx), (py / 2).min(ny), px, py);
-        let [zz, xx, yy, xy] = kernel_spectra(&conv, &tables, nx);
-        let spread = Arc::new(Spread {
-            conv,
-            zz,
-            xx,
-            yy,
-            xy,
-        });
-        self.spread_cache.insert((px, py), spread.clone());
-        self.stats.kernel_s += start.elapsed().as_secs_f64();
-        spread
-    }
-
-    fn spectra(&mut self, nx: usize, ny: usize) -> Arc<Spectra> {
-        if let Some(s) = self.cache.get(&(nx, ny)) {
-            return s.clone();
-        }
-        let start = Instant::now();
-        // A window lies inside the grid, so its offsets are among the grid's.
-        let tables = self.grid_tables();
-        let conv = Conv::new(nx, ny);
-        let [zz, xx, yy, xy] = kernel_spectra(&conv, &tables, self.grid.nx);
-        let tangential_lipschitz = (0..xx.len())
-            .map(|k| {
-                let (a, b, c) = (xx[k], yy[k], xy[k]);
-                let mid = 0.5 * (a + b);
-                let rad = (0.25 * (a - b) * (a - b) + c * c).sqrt();
-                (mid + rad).abs().max((mid - rad).abs())
-            })
-            .fold(0.0, f64::max);
-        let s = Arc::new(Spectra {
-            conv,
-            zz,
-            xx,
-            yy,
-            xy,
-            tangential_lipschitz,
-            self_xx_mm_per_kpa: tables[1][0],
-            self_yy_mm_per_kpa: tables[2][0],
-        });
-        self.cache.insert((nx, ny), s.clone());
-        self.stats.kernel_s += start.elapsed().as_secs_f64();
-        s
+    fn grid_tables(&self) -> &[Vec<f64>; 4] {
+        self.grid_tables.get_or_init(|| {
+            let (nx, ny) = (self.grid.nx, self.grid.ny);
+            COMPONENTS.map(|c| self.table(c, nx, ny))
+        })
     }
 
     fn out_of_validity(&self, reason: impl Into<String>) -> ContactError {
@@ -1087,42 +1174,41 @@ fn embed(grid: &Grid, window: Rect, values: &[f64]) -> Vec<f64> {
     out
 }
 
-impl Bem {
-    /// Solves one frame after `previous`; returns the fields and the history for the next frame
-    /// (`None`: no contact, forget the path).
-    fn solve_frame(
-        &mut self,
-        input: &ContactInput,
-        previous: Option<&History>,
-    ) -> Result<(Fields, Option<History>), ContactError> {
-        let start = Instant::now();
-        self.stats = BemStats::default();
-        let grid = self.grid;
-        let n = grid.len();
-        let gap = &input.gap.gap_mm;
-        if input.gap.grid != grid || gap.len() != n || input.rigid_shift_mm.len() != n {
+impl Model {
+    /// The gap field fits the grid and holds no NaN.
+    fn check_gap(&self, gap: &GapField) -> Result<(), ContactError> {
+        if gap.grid != self.grid || gap.gap_mm.len() != self.grid.len() {
             return Err(self.out_of_validity("gap field or shifts do not match the solver grid"));
         }
-        if gap.iter().any(|g| g.is_nan()) {
+        if gap.gap_mm.iter().any(|g| g.is_nan()) {
             return Err(self.out_of_validity("NaN in the gap field"));
         }
-        if input
-            .rigid_shift_mm
-            .iter()
-            .flatten()
-            .any(|s| !s.is_finite())
-        {
-            return Err(self.out_of_validity("non-finite rigid shift"));
-        }
+        Ok(())
+    }
+
+    /// The normal problem of a frame at `gap` after `previous` (the window around the candidate
+    /// contact, enlarged until the contact stays inside it).
+    fn normal_frame(
+        &self,
+        side: &mut Side,
+        work: &mut NormalWork,
+        input: (&GapField, NormalControl),
+        previous: Option<NormalPast<'_>>,
+    ) -> Result<Normal, ContactError> {
+        let start = Instant::now();
+        side.kernel_s = 0.0;
+        let (gap, normal) = input;
+        self.check_gap(gap)?;
+        let grid = self.grid;
+        let n = grid.len();
+        let gap = &gap.gap_mm;
         let nearest_mm = gap.iter().copied().fold(f64::INFINITY, f64::min);
-        let load_n = match input.normal {
+        let load_n = match normal {
             NormalControl::Approach => None,
             NormalControl::Force(f) if !f.is_finite() => {
                 return Err(self.out_of_validity(format!("normal force {f} N")));
             }
-            NormalControl::Force(f) if f <= 0.0 => {
-                return Ok((Fields::zero(grid), None));
-            }
+            NormalControl::Force(f) if f <= 0.0 => return Ok(Normal::Free),
             NormalControl::Force(f) => {
                 if !nearest_mm.is_finite() {
                     return Err(self.out_of_validity(
@@ -1133,7 +1219,7 @@ impl Bem {
             }
         };
         if load_n.is_none() && nearest_mm >= 0.0 {
-            return Ok((Fields::zero(grid), None));
+            return Ok(Normal::Free);
         }
         if let Some(layer_mm) = self.layer.as_ref().map(|_| self.gel.thickness_mm)
             && layer_mm < 2.0 * grid.cell_mm
@@ -1170,10 +1256,10 @@ impl Bem {
                 if self.layer.is_some() { 0.25 } else { 0.0 },
             ),
         };
+        let (mut convolutions, mut windows) = (0, 0);
         let (window, pressure_kpa, uz_into_mm) = loop {
             let window = window_around(&grid, core, grow);
-            let spectra = self.spectra(window.width(), window.height());
-            let mut work = std::mem::take(&mut self.normal_work);
+            let spectra = side.spectra(self, window.width(), window.height());
             work.gap_mm.clear();
             work.gap_mm.extend(cells(&grid, window).map(|k| gap[k]));
             // Warm start: the last two frames' pressures extrapolated linearly in time; no
@@ -1182,7 +1268,7 @@ impl Bem {
             work.pressure_kpa.extend(cells(&grid, window).map(|k| {
                 match previous.filter(|_| self.options.warm_start) {
                     _ if !gap[k].is_finite() => 0.0,
-                    Some(h) => match &h.pressure_before_kpa {
+                    Some(h) => match h.pressure_before_kpa {
                         Some(before) => (2.0 * h.pressure_kpa[k] - before[k]).max(0.0),
                         None => h.pressure_kpa[k],
                     },
@@ -1210,18 +1296,16 @@ impl Bem {
                 let total = initial.iter().sum::<f64>() * da_n;
                 initial.iter_mut().for_each(|p| *p *= load / total);
             }
-            let normal = self.solve_normal(&spectra, &mut work, offset_mm, load_n);
-            self.normal_work = work;
-            let normal = normal?;
-            self.stats.normal_convolutions += normal.convolutions;
-            self.stats.normal_windows += 1;
+            let normal = self.solve_normal(&spectra, work, offset_mm, load_n)?;
+            convolutions += normal.convolutions;
+            windows += 1;
             offset_mm = normal.offset_mm;
-            let pressure = embed(&grid, window, &self.normal_work.pressure_kpa);
+            let pressure = embed(&grid, window, &work.pressure_kpa);
             let mut uz_into = vec![0.0; n];
-            let spread = self.spread(window);
+            let spread = side.spread(self, window);
             spread.conv.spread_into(
                 &spread.zz,
-                &self.normal_work.pressure_kpa,
+                &work.pressure_kpa,
                 (window.width(), window.height()),
                 (window.i0, window.j0),
                 (&mut uz_into, grid.nx),
@@ -1276,15 +1360,46 @@ impl Bem {
                 self.gel.thickness_mm
             )));
         }
+        Ok(Normal::Pressed(NormalFrame {
+            window,
+            pressure_kpa,
+            uz_into_mm,
+            contact,
+            offset_mm,
+            load_controlled: load_n.is_some(),
+            convolutions,
+            windows,
+            normal_s: start.elapsed().as_secs_f64(),
+            kernel_s: side.kernel_s,
+        }))
+    }
 
-        self.stats.normal_s = start.elapsed().as_secs_f64();
+    /// The tangential problem of a frame whose normal contact is `normal`, after `previous`.
+    fn tangential_frame(
+        &self,
+        side: &mut Side,
+        work: &mut NewtonWork,
+        input: &ContactInput,
+        normal: &NormalFrame,
+        previous: Option<&History>,
+    ) -> Result<TangentialFrame, ContactError> {
         let tangential_start = Instant::now();
+        side.kernel_s = 0.0;
+        let grid = self.grid;
+        let n = grid.len();
+        let NormalFrame {
+            window,
+            pressure_kpa,
+            contact,
+            ..
+        } = normal;
+        let window = *window;
         // Tangential problem on the contact's bounding box: tractions vanish outside the
         // contact and only displacements inside it are needed.
         let patch = bbox(&grid, |k| contact[k])
             .map(|r| padded_to(&grid, r, 8))
             .unwrap_or(window);
-        let spectra = self.spectra(patch.width(), patch.height());
+        let spectra = side.spectra(self, patch.width(), patch.height());
         let mu = self.gel.friction;
         let bound: Vec<f64> = cells(&grid, patch).map(|k| mu * pressure_kpa[k]).collect();
         let shift = &input.rigid_shift_mm;
@@ -1307,18 +1422,9 @@ impl Bem {
                 None => vec![0.0; bound.len()],
             }
         });
-        let mut work = std::mem::take(&mut self.newton_work);
-        let solved = self.solve_tangential(
-            &spectra,
-            &mut work,
-            &bound,
-            [&target[0], &target[1]],
-            initial,
-        );
-        self.newton_work = work;
-        let (traction_w, slip_increment, convolutions) = solved?;
-        self.stats.tangential_convolutions = convolutions;
-        self.stats.tangential_s = tangential_start.elapsed().as_secs_f64();
+        let (traction_w, slip_increment, convolutions) =
+            self.solve_tangential(&spectra, work, &bound, [&target[0], &target[1]], initial)?;
+        let tangential_s = tangential_start.elapsed().as_secs_f64();
         let target_scale = target.iter().flatten().fold(0.0f64, |m, v| m.max(v.abs()));
         let slip_tol = 1e-6 * target_scale.max(1e-9 * grid.cell_mm);
         let slip_w: Vec<f64> = (0..bound.len())
@@ -1335,7 +1441,7 @@ impl Bem {
         let slip_full = embed(&grid, patch, &slip_w);
         let traction = [0, 1].map(|c| embed(&grid, patch, &traction_w[c]));
         let (mut ux, mut uy) = (vec![0.0; n], vec![0.0; n]);
-        let spread = self.spread(patch);
+        let spread = side.spread(self, patch);
         spread.conv.spread_pair_into(
             [&spread.xx, &spread.yy, &spread.xy],
             [&traction_w[0], &traction_w[1]],
@@ -1343,7 +1449,122 @@ impl Bem {
             (patch.i0, patch.j0),
             ([&mut ux, &mut uy], grid.nx),
         );
+        Ok(TangentialFrame {
+            traction_kpa: traction,
+            slip: (0..n).map(|k| contact[k] && slip_full[k] > 0.0).collect(),
+            u_tangential_mm: [ux, uy],
+            convolutions,
+            tangential_s,
+            kernel_s: side.kernel_s,
+        })
+    }
+}
 
+impl History {
+    /// This frame's part in the next one's normal problem.
+    fn normal_past(&self) -> NormalPast<'_> {
+        NormalPast {
+            pressure_kpa: &self.pressure_kpa,
+            pressure_before_kpa: self.pressure_before_kpa.as_deref(),
+            offset_mm: self.offset_mm,
+        }
+    }
+}
+
+impl Bem {
+    /// Solves one frame after `previous` and, given `next`, that frame's normal problem beside
+    /// this one's tangential problem; returns the fields and the history for the next frame
+    /// (`None`: no contact, forget the path).
+    fn solve_frame(
+        &mut self,
+        input: &ContactInput,
+        previous: Option<&History>,
+        next: Option<NextFrame<'_>>,
+    ) -> Result<(Fields, Option<History>), ContactError> {
+        let start = Instant::now();
+        self.stats = BemStats::default();
+        let model = &self.model;
+        let grid = model.grid;
+        model.check_gap(input.gap)?;
+        if input.rigid_shift_mm.len() != grid.len() {
+            return Err(model.out_of_validity("gap field or shifts do not match the solver grid"));
+        }
+        if input
+            .rigid_shift_mm
+            .iter()
+            .flatten()
+            .any(|s| !s.is_finite())
+        {
+            return Err(model.out_of_validity("non-finite rigid shift"));
+        }
+        let normal = match self.ahead.take() {
+            Some(ahead) if ahead.normal == input.normal && ahead.gap_mm == input.gap.gap_mm => {
+                ahead.solved?
+            }
+            _ => model.normal_frame(
+                &mut self.normal_side,
+                &mut self.normal_work,
+                (input.gap, input.normal),
+                previous.map(History::normal_past),
+            )?,
+        };
+        let Normal::Pressed(normal) = normal else {
+            return Ok((Fields::zero(grid), None));
+        };
+        // The grid's tables are made before the two halves may both need them.
+        model.grid_tables();
+        let (tangential, ahead) = rayon::join(
+            || {
+                model.tangential_frame(
+                    &mut self.tangential_side,
+                    &mut self.newton_work,
+                    input,
+                    &normal,
+                    previous,
+                )
+            },
+            || {
+                next.map(|next| Ahead {
+                    gap_mm: next.gap.gap_mm.clone(),
+                    normal: next.normal,
+                    solved: model.normal_frame(
+                        &mut self.normal_side,
+                        &mut self.normal_work,
+                        (next.gap, next.normal),
+                        Some(NormalPast {
+                            pressure_kpa: &normal.pressure_kpa,
+                            pressure_before_kpa: previous.map(|h| h.pressure_kpa.as_slice()),
+                            offset_mm: normal.offset_mm,
+                        }),
+                    ),
+                })
+            },
+        );
+        let tangential = tangential?;
+        self.ahead = ahead;
+        let NormalFrame {
+            pressure_kpa,
+            uz_into_mm,
+            contact,
+            offset_mm,
+            load_controlled,
+            ..
+        } = normal;
+        self.stats = BemStats {
+            normal_convolutions: normal.convolutions,
+            normal_windows: normal.windows,
+            tangential_convolutions: tangential.convolutions,
+            normal_s: normal.normal_s,
+            kernel_s: normal.kernel_s + tangential.kernel_s,
+            tangential_s: tangential.tangential_s,
+            total_s: 0.0,
+        };
+        let TangentialFrame {
+            traction_kpa: [tx, ty],
+            u_tangential_mm: [ux, uy],
+            slip,
+            ..
+        } = tangential;
         let mut uz_mm = uz_into_mm;
         uz_mm.iter_mut().for_each(|u| *u = -*u);
         let mut fields = Fields {
@@ -1352,16 +1573,15 @@ impl Bem {
             uy_mm: uy.clone(),
             uz_mm,
             pressure_kpa: pressure_kpa.clone(),
-            traction_x_kpa: traction[0].clone(),
-            traction_y_kpa: traction[1].clone(),
-            slip: (0..n).map(|k| contact[k] && slip_full[k] > 0.0).collect(),
+            traction_x_kpa: tx.clone(),
+            traction_y_kpa: ty.clone(),
+            slip,
             contact,
             force_n: [0.0; 3],
-            approach_offset_mm: if load_n.is_some() { offset_mm } else { 0.0 },
+            approach_offset_mm: if load_controlled { offset_mm } else { 0.0 },
         };
         fields.force_n = fields.total_force_n();
         self.stats.total_s = start.elapsed().as_secs_f64();
-        let [tx, ty] = traction;
         let history = History {
             pressure_before_kpa: None,
             traction_before_kpa: None,
@@ -1376,12 +1596,20 @@ impl Bem {
 
 impl ContactSolver for Bem {
     fn name(&self) -> &'static str {
-        self.name
+        self.model.name
     }
 
     fn solve(&mut self, input: &ContactInput) -> Result<Fields, ContactError> {
+        self.solve_ahead(input, None)
+    }
+
+    fn solve_ahead(
+        &mut self,
+        input: &ContactInput,
+        next: Option<NextFrame<'_>>,
+    ) -> Result<Fields, ContactError> {
         let previous = self.history.take();
-        match self.solve_frame(input, previous.as_ref()) {
+        match self.solve_frame(input, previous.as_ref(), next) {
             Ok((fields, history)) => {
                 self.history = history.map(|mut h| {
                     if let Some(p) = previous {
@@ -1393,8 +1621,10 @@ impl ContactSolver for Bem {
                 Ok(fields)
             }
             Err(e) => {
-                // A frame that fails leaves the history of the last good frame in place.
+                // A frame that fails leaves the history of the last good frame in place (and
+                // no normal problem solved ahead from its own).
                 self.history = previous;
+                self.ahead = None;
                 Err(e)
             }
         }
@@ -1402,6 +1632,7 @@ impl ContactSolver for Bem {
 
     fn reset(&mut self) {
         self.history = None;
+        self.ahead = None;
     }
 }
 
@@ -1459,7 +1690,7 @@ mod tests {
             j0: 0,
             j1: grid.ny,
         };
-        let spectra = bem.spectra(grid.nx, grid.ny);
+        let spectra = bem.normal_side.spectra(&bem.model, grid.nx, grid.ny);
         let gap_of = |depth_mm: f64| {
             cells(&grid, window).map(move |k| {
                 let (i, j) = (k % grid.nx, k / grid.nx);
@@ -1479,7 +1710,8 @@ mod tests {
         pool.install(|| {
             // The first frame sizes the buffers (which shows the count works).
             let start = ALLOCATIONS.with(Cell::get);
-            bem.solve_normal(&spectra, &mut work, 0.0, None)
+            bem.model
+                .solve_normal(&spectra, &mut work, 0.0, None)
                 .expect("the first frame converges");
             assert!(ALLOCATIONS.with(Cell::get) > start);
             let depth_mm = 0.05;
@@ -1487,6 +1719,7 @@ mod tests {
             work.gap_mm.clear();
             work.gap_mm.extend(gap_of(depth_mm));
             let solved = bem
+                .model
                 .solve_normal(&spectra, &mut work, 0.0, None)
                 .expect("the second frame converges");
             let allocations = ALLOCATIONS.with(Cell::get) - before;

@@ -51,6 +51,16 @@ pub struct ContactInput<'a> {
     pub rigid_shift_mm: &'a [[f64; 2]],
 }
 
+/// The frame after the one being solved, as far as its normal problem needs it
+/// ([`ContactSolver::solve_ahead`]).
+#[derive(Debug, Clone, Copy)]
+pub struct NextFrame<'a> {
+    /// Gap at the next frame's pose (mm).
+    pub gap: &'a GapField,
+    /// Its displacement or load control.
+    pub normal: NormalControl,
+}
+
 /// Stick/slip state of a whole contact.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum SlipState {
@@ -187,6 +197,18 @@ pub trait ContactSolver: Send {
     fn name(&self) -> &'static str;
     /// Solves one frame.
     fn solve(&mut self, input: &ContactInput) -> Result<Fields, ContactError>;
+    /// Solves one frame, and may start on `next` meanwhile: the boundary-element rungs solve the
+    /// next frame's normal problem beside this frame's tangential one (it needs this frame's
+    /// pressures, not its tractions) and use it when the next call's gap and control are
+    /// `next`'s. Gives the same bits as [`ContactSolver::solve`].
+    fn solve_ahead(
+        &mut self,
+        input: &ContactInput,
+        next: Option<NextFrame<'_>>,
+    ) -> Result<Fields, ContactError> {
+        let _ = next;
+        self.solve(input)
+    }
     /// Forgets the path history.
     fn reset(&mut self);
 }

@@ -3,13 +3,14 @@
 //! frame to frame), and the tactile image of the deformed gel. No disk I/O.
 #![warn(missing_docs)]
 
+use std::collections::VecDeque;
 use std::time::Instant;
 
 use image::RgbImage;
 use rayon::prelude::*;
 use sparsh_contact::{
-    ContactError, ContactInput, ContactSolver, Fields, NormalControl, SlipState, rigid_shift_mm,
-    solver_for,
+    ContactError, ContactInput, ContactSolver, Fields, NextFrame, NormalControl, SlipState,
+    rigid_shift_mm, solver_for,
 };
 use sparsh_optics::{GpuContext, ImageFormation, OpticsError, Surface};
 use sparsh_scene::auto::SolverTable;
@@ -119,8 +120,8 @@ struct Mechanics {
     solver: Box<dyn ContactSolver>,
     previous_pose: Option<Pose>,
     next: usize,
-    /// The gap field of frame `next`, cast while the frame before it was solved.
-    cast_ahead: Option<Cast>,
+    /// The gap fields of the frames from `next` on, cast while earlier frames were solved.
+    cast_ahead: VecDeque<Cast>,
 }
 
 /// A frame's gap field and the seconds its casting took.
@@ -176,7 +177,7 @@ impl Simulator {
                 solver,
                 previous_pose: None,
                 next: 0,
-                cast_ahead: None,
+                cast_ahead: VecDeque::new(),
             },
             scene,
             renderer,
@@ -224,30 +225,45 @@ impl Mechanics {
     /// The next frame's gap field and contact, checked against the rung's validity (and
     /// escalated under `validity = "escalate"`), its fields cropped to the camera's view; `None`
     /// after the last frame.
+    ///
+    /// The next frame's gap field goes to the solver with this one (the boundary-element rungs
+    /// solve its normal problem beside this frame's tangential one), and the gap field of the
+    /// frame after that is cast meanwhile.
     fn next_contact(&mut self, scene: &Scene) -> Option<Result<Contacted, SimError>> {
         let target = *self.targets.get(self.next)?;
         self.next += 1;
-        let cast = match self.cast_ahead.take() {
-            Some(cast) if cast.index == target.index => cast,
-            _ => Cast::of(scene, &target),
-        };
+        let cast = self.cast(scene, &target);
         let following = self.targets.get(self.next).copied();
-        let (contacted, ahead) = rayon::join(
-            || self.contact(scene, target, cast),
-            || following.map(|t| Cast::of(scene, &t)),
+        let next = following.map(|t| (self.cast(scene, &t), t));
+        let after = self.targets.get(self.next + 1).copied();
+        let (contacted, after_cast) = rayon::join(
+            || self.contact(scene, target, cast, next.as_ref()),
+            || after.map(|t| Cast::of(scene, &t)),
         );
-        self.cast_ahead = ahead;
+        self.cast_ahead = next.map(|(c, _)| c).into_iter().chain(after_cast).collect();
         Some(contacted)
     }
 
+    /// The gap field of `target`: cast ahead, or now.
+    fn cast(&mut self, scene: &Scene, target: &FrameTarget) -> Cast {
+        match self.cast_ahead.pop_front() {
+            Some(cast) if cast.index == target.index => cast,
+            _ => {
+                self.cast_ahead.clear();
+                Cast::of(scene, target)
+            }
+        }
+    }
+
     /// Solves the contact of `target` (its gap field `cast`) with `solver`, after the frame
-    /// posed at `previous`.
+    /// posed at `previous`, handing the solver the `next` frame's gap field if known.
     fn solve_contact(
         scene: &Scene,
         solver: &mut dyn ContactSolver,
         target: &FrameTarget,
         cast: Cast,
         previous: Option<&Pose>,
+        next: Option<&(Cast, FrameTarget)>,
     ) -> Result<Solved, SimError> {
         let grid = scene.mechanics_grid();
         let Cast { gap, .. } = cast;
@@ -257,15 +273,19 @@ impl Mechanics {
         };
         let input = ContactInput {
             gap: &gap,
-            normal: target
-                .normal_force_n
-                .map_or(NormalControl::Approach, NormalControl::Force),
+            normal: normal_control(target),
             rigid_shift_mm: &rigid_shift_mm,
         };
-        let fields = solver.solve(&input).map_err(|source| SimError::Contact {
-            frame: target.index,
-            source,
-        })?;
+        let next = next.map(|(cast, target)| NextFrame {
+            gap: &cast.gap,
+            normal: normal_control(target),
+        });
+        let fields = solver
+            .solve_ahead(&input, next)
+            .map_err(|source| SimError::Contact {
+                frame: target.index,
+                source,
+            })?;
         let mut pose = target.pose;
         pose.position_mm.z -= fields.approach_offset_mm;
         Ok(Solved { gap, fields, pose })
@@ -327,13 +347,25 @@ impl Mechanics {
         let mut previous = None;
         for earlier in &self.targets[..target.index] {
             let cast = Cast::of(scene, earlier);
-            let solved =
-                Mechanics::solve_contact(scene, solver.as_mut(), earlier, cast, previous.as_ref())?;
+            let solved = Mechanics::solve_contact(
+                scene,
+                solver.as_mut(),
+                earlier,
+                cast,
+                previous.as_ref(),
+                None,
+            )?;
             previous = Some(solved.pose);
         }
         let cast = Cast::of(scene, target);
-        let solved =
-            Mechanics::solve_contact(scene, solver.as_mut(), target, cast, previous.as_ref())?;
+        let solved = Mechanics::solve_contact(
+            scene,
+            solver.as_mut(),
+            target,
+            cast,
+            previous.as_ref(),
+            None,
+        )?;
         self.rung = rung;
         self.limits = limits;
         self.solver = solver;
@@ -345,6 +377,7 @@ impl Mechanics {
         scene: &Scene,
         target: FrameTarget,
         cast: Cast,
+        next: Option<&(Cast, FrameTarget)>,
     ) -> Result<Contacted, SimError> {
         let start = Instant::now();
         let gap_s = cast.gap_s;
@@ -354,6 +387,7 @@ impl Mechanics {
             &target,
             cast,
             self.previous_pose.as_ref(),
+            next,
         )?;
         let mut validity = self.validity(scene, &solved);
         if !validity.is_ok() {
@@ -394,6 +428,13 @@ impl Mechanics {
             contact_s: start.elapsed().as_secs_f64(),
         })
     }
+}
+
+/// How a frame's normal problem is driven: its commanded force, else its pose's approach.
+fn normal_control(target: &FrameTarget) -> NormalControl {
+    target
+        .normal_force_n
+        .map_or(NormalControl::Approach, NormalControl::Force)
 }
 
 /// The image of a frame whose contact is solved: the deformed surface (upsampled to the
