@@ -116,8 +116,9 @@ fn validate_runs_the_cases_of_a_directory() {
 
 /// `bench` with two rungs and two strides: one row each, in order, every one of the scene's
 /// 1.2 s × 10 fps = 12 frames, the ratio column the frames/s over the first row's, and each
-/// path's stage times within the wall time per frame: gap and contact run one after the other
-/// frame by frame, the images one after the other, the writing on one thread.
+/// path's stage times within the wall time per frame: the contact solves run one after the
+/// other frame by frame (the gap casts too, beside them), the images one after the other, the
+/// writing on one thread.
 #[test]
 fn bench_times_every_rung_and_stride() {
     let tmp = tempfile::tempdir().unwrap();
@@ -167,7 +168,8 @@ fn bench_times_every_rung_and_stride() {
             "{text}"
         );
         // printed to 0.01 ms
-        assert!(gap + contact <= wall_ms + 0.01, "{text}");
+        assert!(gap <= wall_ms + 0.005, "{text}");
+        assert!(contact <= wall_ms + 0.005, "{text}");
         assert!(optics <= wall_ms + 0.005, "{text}");
         assert!(writing <= wall_ms + 0.005, "{text}");
         assert!(contact > 0.0 && writing > 0.0, "{text}");
