@@ -61,14 +61,16 @@ pub struct BemStats {
     pub normal_windows: usize,
     /// Convolutions spent on the tangential problem.
     pub tangential_convolutions: usize,
-    /// Wall time of the normal problem (s), window enlargements and full-grid uz included.
+    /// Wall time of the normal problem (s), window enlargements and full-grid uz included
+    /// (spent during the previous call when that call solved it ahead).
     pub normal_s: f64,
     /// Wall time spent computing the kernel spectra of new window sizes (s), included in the
     /// normal and tangential times.
     pub kernel_s: f64,
     /// Wall time of the tangential problem (s).
     pub tangential_s: f64,
-    /// Wall time of the frame (s).
+    /// Wall time of the call (s); with [`ContactSolver::solve_ahead`] it includes the next
+    /// frame's normal problem, solved beside this frame's tangential one.
     pub total_s: f64,
 }
 
