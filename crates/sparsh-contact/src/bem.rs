@@ -222,7 +222,9 @@ struct Model {
     grid_tables: OnceLock<[Vec<f64>; 4]>,
 }
 
-/// Kernel spectra of one half of the frame's problem, by size.
+/// Kernel spectra of one half of the frame's problem, by size. Each half keeps its own: a
+/// convolution's work space is locked while in use, so shared spectra would make the halves wait
+/// on each other whenever a window and a patch have the same size.
 #[derive(Debug, Default)]
 struct Side {
     /// Window (or patch) convolutions.

@@ -149,8 +149,9 @@ impl Cast {
 ///
 /// The contact of frame k + 1 depends on frame k's (stick/slip history) but frame k's image does
 /// not, so while frame k's image is formed the next frame's contact is already being solved,
-/// and the gap field of the frame after that cast (tasks on the rayon pool). Each stage is deterministic, so the frames are the same bits
-/// as one stage after the other, whatever the thread count.
+/// with frame k + 2's normal problem beside its tangential one and frame k + 3's gap field cast
+/// meanwhile (tasks on the rayon pool). Each stage is deterministic, so the frames are the same
+/// bits as one stage after the other, whatever the thread count.
 pub struct Simulator {
     scene: Scene,
     mechanics: Mechanics,
