@@ -8,7 +8,7 @@ use sparsh_ssl::embed::{FrozenEncoder, Pool};
 use sparsh_ssl::recipe::Recipe;
 
 mod common;
-use common::{RECIPE, assert_user_error, generate, sparsh, stderr, write_scene};
+use common::{RECIPE, assert_user_error, generate, sparsh, stderr, wgpu_or_skip, write_scene};
 
 /// Two sequences of eight frames on a small sensor.
 const SCENE: &str = r#"
@@ -262,4 +262,95 @@ fn bad_input_fails_on_one_line_naming_the_file() {
         o,
     ]);
     assert_user_error(&out, "--config");
+}
+
+/// The features of a `.npy` file written by `sparsh embed`: its shape and values.
+fn read_npy(path: &Path) -> (Vec<u64>, Vec<f32>) {
+    let bytes = std::fs::read(path).unwrap();
+    let array = npyz::NpyFile::new(&bytes[..]).unwrap();
+    (array.shape().to_vec(), array.into_vec().unwrap())
+}
+
+/// `--device wgpu` (Mesa's lavapipe here, a software Vulkan driver) writes the CPU's features:
+/// the encoder is loaded on the CPU and moved, so every token differs only by floating-point
+/// rounding (sums in another order).
+#[test]
+fn embed_on_wgpu_writes_the_cpu_features() {
+    if !wgpu_or_skip() {
+        return;
+    }
+    let (tmp, ds, run) = fixture();
+    let weights = run.join("encoder.safetensors");
+    let embed_on = |device: &str| {
+        let out_file = tmp.path().join(format!("{device}.npy"));
+        let t0 = std::time::Instant::now();
+        // every token, in batches of 5 (the last one short)
+        let out = sparsh(&[
+            "--quiet",
+            "embed",
+            "--encoder",
+            weights.to_str().unwrap(),
+            "--data",
+            ds.to_str().unwrap(),
+            "--out",
+            out_file.to_str().unwrap(),
+            "--pool",
+            "none",
+            "--batch-size",
+            "5",
+            "--device",
+            device,
+        ]);
+        assert!(out.status.success(), "{device}: {}", stderr(&out));
+        eprintln!("{device}: {:.1} s", t0.elapsed().as_secs_f64());
+        read_npy(&out_file)
+    };
+    let (cpu, gpu) = (embed_on("cpu"), embed_on("wgpu"));
+    assert_eq!(cpu.0, [16, 108, 192]);
+    assert_eq!(gpu.0, cpu.0);
+    assert!(gpu.1.iter().all(|v| v.is_finite()));
+    let scale = cpu.1.iter().fold(0f32, |m, v| m.max(v.abs()));
+    let diff = cpu
+        .1
+        .iter()
+        .zip(&gpu.1)
+        .fold(0f32, |m, (a, b)| m.max((a - b).abs()));
+    eprintln!(
+        "features up to {scale:.3} in magnitude differ by up to {diff:.2e} ({:.2e} relative)",
+        diff / scale
+    );
+    assert!(
+        diff <= REL_TOL * scale,
+        "features differ by {diff:.2e} (scale {scale:.3})"
+    );
+}
+
+/// Tolerance of [`embed_on_wgpu_writes_the_cpu_features`], relative to the largest feature:
+/// two blocks of a ViT in f32 on two backends round differently in the last bits only.
+const REL_TOL: f32 = 1e-4;
+
+/// A device the build or the machine lacks, or several devices, is refused on one line before
+/// any file is written.
+#[test]
+fn a_device_embed_cannot_use_is_a_one_line_error() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out_npy = tmp.path().join("f.npy");
+    let run = |device: &[&str]| {
+        let mut args = vec![
+            "embed",
+            "--encoder",
+            "missing.safetensors",
+            "--data",
+            "missing",
+            "--out",
+            out_npy.to_str().unwrap(),
+        ];
+        args.extend_from_slice(device);
+        sparsh(&args)
+    };
+    #[cfg(not(feature = "cuda"))]
+    assert_user_error(&run(&["--device", "cuda"]), "--features cuda");
+    assert_user_error(&run(&["--devices", "0,1"]), "one device");
+    assert_user_error(&run(&["--devices", "x"]), "not a device index");
+    assert!(!out_npy.exists());
 }

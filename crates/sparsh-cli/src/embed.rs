@@ -5,6 +5,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, Result, bail};
 use safetensors::{Dtype, tensor::TensorView};
 use sparsh_ssl::data::generated_sequences;
+use sparsh_ssl::device::Devices;
 use sparsh_ssl::embed::{Embeddings, FrozenEncoder, Pool};
 use sparsh_ssl::recipe::Recipe;
 use sparsh_ssl::train::write_atomic;
@@ -40,7 +41,8 @@ fn format_of(out: &Path) -> Result<Format> {
 }
 
 /// Embeds every frame of the dataset `data` with the encoder `weights` of the recipe `config`
-/// (default: the `recipe.toml` of the run directory holding the weights) into `out`.
+/// (default: the `recipe.toml` of the run directory holding the weights) into `out`, computing
+/// on `device` (the encoder is loaded on the CPU and moved there).
 pub fn embed(
     weights: &Path,
     config: Option<&Path>,
@@ -48,6 +50,7 @@ pub fn embed(
     out: &Path,
     pool: PoolArg,
     batch: usize,
+    device: &Devices,
 ) -> Result<()> {
     let format = format_of(out)?;
     anyhow::ensure!(batch > 0, "--batch-size must be at least 1");
@@ -68,7 +71,8 @@ pub fn embed(
     };
     let recipe = Recipe::load(&config)?;
     let encoder = FrozenEncoder::load(&recipe, weights)
-        .with_context(|| format!("encoder of the recipe {}", config.display()))?;
+        .with_context(|| format!("encoder of the recipe {}", config.display()))?
+        .to_device(device.main());
     let sequences = generated_sequences(data)?;
     let total: usize = sequences.iter().map(|s| s.frames.len()).sum();
     let pool = match pool {

@@ -46,8 +46,8 @@ struct DeviceArgs {
     device: sparsh_ssl::device::DeviceKind,
     /// Which devices of the --device kind (indices as `sparsh devices` lists them, e.g. 0,1):
     /// pretrain splits every batch across them (data-parallel) and averages their gradients on
-    /// the first; probe computes on the first; tacbench and fieldprobe take one index. Default:
-    /// the kind's first device.
+    /// the first; probe computes on the first; tacbench, fieldprobe and embed take one index.
+    /// Default: the kind's first device.
     #[arg(long, value_name = "I,J,…")]
     devices: Option<String>,
 }
@@ -373,6 +373,8 @@ enum Command {
         /// Frames per forward pass.
         #[arg(long, default_value_t = 32)]
         batch_size: usize,
+        #[command(flatten)]
+        device: DeviceArgs,
     },
     /// TacBench: frozen encoders read out by the attentive probe on force, slip, pose,
     /// texture and grasp tasks at label budgets, against random draws of the same
@@ -691,7 +693,16 @@ fn run(cli: Cli) -> Result<()> {
             out,
             pool,
             batch_size,
-        } => embed::embed(&encoder, config.as_deref(), &data, &out, pool, batch_size),
+            device,
+        } => embed::embed(
+            &encoder,
+            config.as_deref(),
+            &data,
+            &out,
+            pool,
+            batch_size,
+            &device.choose_one("embed")?,
+        ),
         Command::Tacbench {
             config,
             out,

@@ -5,7 +5,8 @@
 //! objectives, four frames for V-JEPA), each frame preprocessed against the sequence's no-contact
 //! background ([`crate::data::preprocess`]). An offset reaching before the first frame reads the
 //! no-contact frame (the background against itself), so every frame of a sequence has features.
-//! Inference runs on the plain CPU device (no autodiff).
+//! Inference runs without autodiff on the CPU, or on the device the encoder was moved to
+//! ([`FrozenEncoder::to_device`]).
 
 use std::path::Path;
 
@@ -38,8 +39,8 @@ pub struct FrozenEncoder {
 }
 
 impl FrozenEncoder {
-    /// Loads the recipe's encoder from `weights` (safetensors, official key names); an error
-    /// names the file when its tensors do not fit the recipe's encoder.
+    /// Loads the recipe's encoder from `weights` (safetensors, official key names) on the CPU; an
+    /// error names the file when its tensors do not fit the recipe's encoder.
     pub fn load(recipe: &Recipe, weights: &Path) -> Result<Self, Error> {
         let cfg = recipe.encoder_config()?;
         let vit = crate::weights::load_encoder(cfg.init(&Device::flex()), weights, None)?;
@@ -54,6 +55,24 @@ impl FrozenEncoder {
             ],
             tokens: cfg.num_patches(),
         })
+    }
+
+    /// The encoder on `device` (loaded on the CPU, then moved): returned as it is when it lives
+    /// there already, so on the CPU it computes exactly as it did before the move existed.
+    pub fn to_device(mut self, device: &Device) -> Self {
+        if !self.vit.devices().iter().all(|d| d == device) {
+            self.vit = self.vit.fork(device);
+        }
+        self
+    }
+
+    /// The device the encoder computes on.
+    pub fn device(&self) -> Device {
+        self.vit
+            .devices()
+            .first()
+            .cloned()
+            .unwrap_or_else(Device::flex)
     }
 
     /// Frame offsets back in time of one sample, in input order (`[0, 5]`: I_t, then I_{t−5}).
@@ -105,7 +124,7 @@ impl FrozenEncoder {
         let n = inputs.len() / self.sample_len();
         assert_eq!(n * self.sample_len(), inputs.len(), "whole samples");
         let [f, c, h, w] = self.sample_shape;
-        let x = Tensor::<1>::from_floats(inputs, &Device::flex()).reshape([n, f, c, h, w]);
+        let x = Tensor::<1>::from_floats(inputs, &self.device()).reshape([n, f, c, h, w]);
         encode(&self.vit, x, pool)
     }
 
@@ -168,14 +187,18 @@ impl FrozenEncoder {
 }
 
 /// Features of a batch of clips `[batch, frames, channels, height, width]` on the host,
-/// row-major `[batch, dim]` pooled, else `[batch, tokens, dim]`.
+/// row-major `[batch, dim]` pooled, else `[batch, tokens, dim]`. `vit` and `x` are on one
+/// device.
 ///
-/// The batch is split into one part per thread of the rayon pool, encoded in parallel: burn's
+/// On the CPU the batch is split into one part per thread of the rayon pool, encoded in parallel: burn's
 /// CPU backend runs element-wise ops (residual adds, softmax, copies) on the calling thread, so
 /// this is what puts every core to work outside the matrix products and this crate's own
 /// GELU and layer-norm kernels ([`crate::kernels`]). A sample's features do not depend on the
-/// split beyond float rounding.
+/// split beyond float rounding. On any other device the batch is one forward pass.
 pub fn encode(vit: &Vit, x: Tensor<5>, pool: Pool) -> Vec<f32> {
+    if x.device() != Device::flex() {
+        return encode_part(vit, x, pool);
+    }
     let b = x.dims()[0];
     let size = b.div_ceil(rayon::current_num_threads().clamp(1, b.max(1)));
     if size >= b {
