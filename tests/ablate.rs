@@ -190,3 +190,27 @@ fn bad_ablation_files_get_one_line_errors() {
         "probe.weights",
     );
 }
+
+/// A device the build lacks, or several devices, is refused on one line before the ablation
+/// file is read or anything is written.
+#[test]
+fn a_device_ablate_cannot_use_is_a_one_line_error() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out_dir = tmp.path().join("run");
+    let run = |device: &[&str]| {
+        let mut args = vec![
+            "ablate",
+            "--config",
+            "missing.toml",
+            "--out",
+            out_dir.to_str().unwrap(),
+        ];
+        args.extend_from_slice(device);
+        sparsh(&args)
+    };
+    #[cfg(not(feature = "cuda"))]
+    assert_user_error(&run(&["--device", "cuda"]), "--features cuda");
+    assert_user_error(&run(&["--devices", "0,1"]), "one device");
+    assert_user_error(&run(&["--devices", "x"]), "not a device index");
+    assert!(!out_dir.exists());
+}

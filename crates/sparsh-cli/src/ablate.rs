@@ -6,11 +6,13 @@ use std::time::Instant;
 
 use anyhow::Result;
 use sparsh_bench::ablate::{self, RunOptions, config::AblationConfig};
+use sparsh_ssl::device::Devices;
 
 use crate::dataset::{self, DeviceArg, GenerateOptions};
 
-/// Runs the ablation of `config` into `out` and prints the table.
-pub fn run(config: &Path, out: &Path, resume: bool, quick: bool) -> Result<()> {
+/// Runs the ablation of `config` into `out` and prints the table; the CNNs, the probes and the
+/// frozen encoder compute on `device` (the simulator's images are formed on the CPU).
+pub fn run(config: &Path, out: &Path, resume: bool, quick: bool, device: &Devices) -> Result<()> {
     let start = Instant::now();
     let cfg = AblationConfig::load(config)?;
     let generate = |scene: &Path, dir: &Path| -> Result<(), String> {
@@ -30,7 +32,12 @@ pub fn run(config: &Path, out: &Path, resume: bool, quick: bool) -> Result<()> {
             .map_err(|e| format!("{e:#}"))
     };
     let log = |line: &str| eprintln!("{line}");
-    let rows = ablate::run(&cfg, out, RunOptions { resume, quick }, &generate, &log)?;
+    let opts = RunOptions {
+        resume,
+        quick,
+        device: device.main().clone(),
+    };
+    let rows = ablate::run(&cfg, out, opts, &generate, &log)?;
     let refs: Vec<&ablate::Row> = rows.iter().collect();
     println!("{}", ablate::report::markdown(&refs));
     eprintln!(

@@ -46,8 +46,8 @@ struct DeviceArgs {
     device: sparsh_ssl::device::DeviceKind,
     /// Which devices of the --device kind (indices as `sparsh devices` lists them, e.g. 0,1):
     /// pretrain splits every batch across them (data-parallel) and averages their gradients on
-    /// the first; probe computes on the first; tacbench, fieldprobe and embed take one index.
-    /// Default: the kind's first device.
+    /// the first; probe computes on the first; tacbench, fieldprobe, embed and ablate take one
+    /// index. Default: the kind's first device.
     #[arg(long, value_name = "I,J,…")]
     devices: Option<String>,
 }
@@ -415,6 +415,8 @@ enum Command {
         /// Small settings for tests: 24 sequences per variant, 2 epochs, one seed, 2 folds.
         #[arg(long)]
         quick: bool,
+        #[command(flatten)]
+        device: DeviceArgs,
     },
     /// T1A: the normal and shear field decoder (DPT) on a frozen encoder, trained without
     /// field labels, scored against the simulator's ground-truth fields.
@@ -723,7 +725,8 @@ fn run(cli: Cli) -> Result<()> {
             out,
             resume,
             quick,
-        } => ablate::run(&config, &out, resume, quick),
+            device,
+        } => ablate::run(&config, &out, resume, quick, &device.choose_one("ablate")?),
         Command::Fieldprobe { action } => match action {
             FieldprobeAction::Train {
                 config,

@@ -96,20 +96,33 @@ pub struct Row {
 }
 
 /// How to run.
-#[derive(Debug, Clone, Copy, Default)]
+#[derive(Debug, Clone)]
 pub struct RunOptions {
     /// Keep the variants already recorded in the output.
     pub resume: bool,
     /// Small settings for tests: 24 sequences per variant, 2 epochs, one seed, 2 folds.
     pub quick: bool,
+    /// Where the CNNs and the probes train and the frozen encoder runs (models are drawn on
+    /// the CPU under their seed and moved).
+    pub device: Device,
+}
+
+impl Default for RunOptions {
+    fn default() -> Self {
+        RunOptions {
+            resume: false,
+            quick: false,
+            device: Device::flex(),
+        }
+    }
 }
 
 /// What [`run`] needs from the simulator: make the dataset of a scene file in a directory
 /// (kept as is when it is already complete).
 pub type Generate<'a> = dyn Fn(&Path, &Path) -> Result<(), String> + 'a;
 
-/// The settings actually used (the config's, or the quick ones).
-#[derive(Debug, Clone, Copy)]
+/// The settings actually used (the config's, or the quick ones), and the device.
+#[derive(Debug, Clone)]
 struct Effective {
     seeds: usize,
     bootstrap: usize,
@@ -118,6 +131,7 @@ struct Effective {
     cnn: TrainOptions,
     probe: Option<TrainOptions>,
     real: TrainOptions,
+    device: Device,
 }
 
 fn quick_train(t: TrainOptions) -> TrainOptions {
@@ -182,6 +196,7 @@ pub fn run(
         } else {
             config.real.train
         },
+        device: opts.device.clone(),
     };
     let pack = CalibrationPack::read(&config.pack)
         .map_err(|e| Error::file(&config.pack, format!("{}: {}", e.field, e.message)))?;
@@ -330,10 +345,10 @@ impl ProbeEncoder {
         Ok(x)
     }
 
-    /// Patch tokens of the stacked inputs, `[n, tokens, dim]`.
-    fn encode(&self, vit: &Vit, inputs: &[f32]) -> (Vec<f32>, [usize; 3]) {
-        let vit = vit.clone().valid();
-        let device = Device::flex();
+    /// Patch tokens of the stacked inputs, `[n, tokens, dim]`, computed on `device`.
+    fn encode(&self, vit: &Vit, inputs: &[f32], device: &Device) -> (Vec<f32>, [usize; 3]) {
+        let device = device.clone().inner();
+        let vit = crate::on_device(vit.clone().valid(), &device);
         let [h, w] = self.size;
         let per = 6 * h * w;
         let n = inputs.len() / per;
@@ -396,7 +411,8 @@ fn cnn_forward(
     }
 }
 
-/// Trains the CNN on `train` of `frames` (validating on `val`) and predicts `test`.
+/// Trains the CNN on `train` of `frames` (validating on `val`) on `device` and predicts `test`.
+#[allow(clippy::too_many_arguments)]
 fn cnn_seed(
     frames: &CircleFrames,
     train: &[(usize, Circle)],
@@ -405,11 +421,20 @@ fn cnn_seed(
     size: [usize; 2],
     opts: TrainOptions,
     seed: u64,
+    device: &Device,
 ) -> (Vec<Circle>, Fitted<CircleCnn>) {
-    let device = Device::flex().autodiff();
-    let model = seeded_module(&device, seed, || CircleCnn::new(&device));
-    let fitted: Fitted<CircleCnn> =
-        models::fit(model, size, &cnn_forward(frames), train, val, opts, seed);
+    let cpu = Device::flex().autodiff();
+    let model = seeded_module(&cpu, seed, || CircleCnn::new(&cpu));
+    let fitted: Fitted<CircleCnn> = models::fit(
+        model,
+        size,
+        &cnn_forward(frames),
+        train,
+        val,
+        opts,
+        seed,
+        device,
+    );
     let rows: Vec<usize> = (0..test.len()).collect();
     (fitted.predict(&cnn_forward(test), &rows), fitted)
 }
@@ -562,22 +587,30 @@ fn run_variant(
             pack_size,
             eff.cnn,
             seed,
+            &eff.device,
         );
         Ok((preds, fitted.best_epoch, fitted.val_preds))
     })?;
     if let (Some(enc), Some(popts)) = (probe_on, eff.probe) {
         // tokens standardized with the synthetic training frames' statistics
         let tokens_of = |vit: &Vit| {
-            let (mut syn, dims) = enc.encode(vit, &inputs);
-            let (mut rea, _) = enc.encode(vit, real_inputs);
+            let (mut syn, dims) = enc.encode(vit, &inputs, &eff.device);
+            let (mut rea, _) = enc.encode(vit, real_inputs, &eff.device);
             let stats = RowStats::of(&syn, dims[1] * dims[2], &train);
             stats.apply(&mut syn);
             stats.apply(&mut rea);
             (syn, rea, dims)
         };
         let probe = |tokens: &PairedTokens, seed: u64| {
-            let (preds, fitted) =
-                probe_seed(tokens, &train_pairs, &val_pairs, pack_size, popts, seed);
+            let (preds, fitted) = probe_seed(
+                tokens,
+                &train_pairs,
+                &val_pairs,
+                pack_size,
+                popts,
+                seed,
+                &eff.device,
+            );
             Ok((preds, fitted.best_epoch, fitted.val_preds))
         };
         if let Some(vit) = &enc.pretrained {
@@ -619,7 +652,8 @@ type Seeded = (Vec<Circle>, usize, Vec<Circle>);
 /// (n of the synthetic set).
 type PairedTokens = (Vec<f32>, Vec<f32>, [usize; 3]);
 
-/// Trains the attentive probe on standardized synthetic tokens and predicts the real ones.
+/// Trains the attentive probe on standardized synthetic tokens on `device` and predicts the
+/// real ones.
 fn probe_seed(
     (syn, real, dims): &PairedTokens,
     train: &[(usize, Circle)],
@@ -627,6 +661,7 @@ fn probe_seed(
     size: [usize; 2],
     opts: TrainOptions,
     seed: u64,
+    on: &Device,
 ) -> (Vec<Circle>, Fitted<AttentiveProbe>) {
     let [_, t, d] = *dims;
     let syn_forward = token_forward(syn, t, d);
@@ -645,6 +680,7 @@ fn probe_seed(
         val,
         opts,
         seed,
+        on,
     );
     let real_forward = token_forward(real, t, d);
     let rows: Vec<usize> = (0..real.len() / (t * d)).collect();
@@ -767,6 +803,7 @@ fn real_ceiling(
                 [w, h],
                 eff.real,
                 (seed * eff.folds + fold) as u64,
+                &eff.device,
             );
             epochs.push(fitted.best_epoch);
             for (&i, c) in held.iter().zip(p) {

@@ -183,14 +183,19 @@ impl<M: Module + Clone> Fitted<M> {
     }
 }
 
+/// Predictions of `model`, computed where it lives.
 fn predict<M: Module + Clone>(
     model: &M,
     scale: &CircleScale,
     forward: &Forward<'_, M>,
     rows: &[usize],
 ) -> Vec<Circle> {
-    let device = Device::flex();
     let valid = model.valid();
+    let device = valid
+        .devices()
+        .first()
+        .cloned()
+        .unwrap_or_else(Device::flex);
     let mut out = Vec::with_capacity(rows.len());
     for chunk in rows.chunks(64) {
         let y = forward(&valid, chunk, &device)
@@ -205,17 +210,20 @@ fn predict<M: Module + Clone>(
 
 /// Trains `model` on `train` (row, circle) pairs of a `size` = `[width, height]` frame; with
 /// `val` rows, keeps the epoch of least validation MSE, else the last. Batches are drawn from
-/// `seed`.
+/// `seed`. Trained on `device` (`model`, drawn on the CPU, is moved there).
+#[allow(clippy::too_many_arguments)]
 pub fn fit<M: Module + Clone>(
-    mut model: M,
+    model: M,
     size: [usize; 2],
     forward: &Forward<'_, M>,
     train: &[(usize, Circle)],
     val: &[(usize, Circle)],
     opts: TrainOptions,
     seed: u64,
+    device: &Device,
 ) -> Fitted<M> {
-    let device = Device::flex().autodiff();
+    let device = device.clone().inner().autodiff();
+    let mut model = crate::on_device(model, &device);
     let circles: Vec<Circle> = train.iter().map(|t| t.1).collect();
     let scale = CircleScale::of(&circles, size);
     let targets = |pairs: &[&(usize, Circle)], device: &Device| {
@@ -351,7 +359,16 @@ mod tests {
             batch_size: 32,
             lr: 3e-3,
         };
-        let fitted = fit(model, [w, h], &forward, train, &test[..32], opts, 1);
+        let fitted = fit(
+            model,
+            [w, h],
+            &forward,
+            train,
+            &test[..32],
+            opts,
+            1,
+            &Device::flex(),
+        );
         let rows: Vec<usize> = test[32..].iter().map(|t| t.0).collect();
         let preds = fitted.predict(&forward, &rows);
         let err = |p: &[Circle]| -> f64 {
@@ -367,5 +384,83 @@ mod tests {
             learned < 0.3 * constant,
             "centre error {learned:.2} px vs the mean circle's {constant:.2}"
         );
+    }
+
+    /// Trained on wgpu (Mesa's lavapipe here, a software Vulkan driver), the CNN drawn on the
+    /// CPU under the same seed keeps the CPU's epoch and predicts its circles to within
+    /// rounding. Skipped without an adapter unless SPARSH_REQUIRE_GPU=1.
+    #[test]
+    fn the_cnn_trained_on_wgpu_predicts_the_cpu_circles() {
+        use sparsh_ssl::device::{DeviceKind, Devices};
+        let gpu = match Devices::choose(DeviceKind::Wgpu, &[]) {
+            Ok(d) => d.main().clone(),
+            Err(e) if std::env::var("SPARSH_REQUIRE_GPU").is_ok_and(|v| v == "1") => {
+                panic!("SPARSH_REQUIRE_GPU=1 and {e}")
+            }
+            Err(e) => {
+                eprintln!("skipped: {e}");
+                return;
+            }
+        };
+        let (h, w, n) = (24, 32, 48);
+        let mut rng = Rng::new(7);
+        let mut images = vec![0.0f32; n * 3 * h * w];
+        let mut pairs = Vec::new();
+        for k in 0..n {
+            let c = Circle {
+                cx_px: rng.range_f64(8.0, 24.0),
+                cy_px: rng.range_f64(7.0, 17.0),
+                r_px: rng.range_f64(3.0, 6.0),
+            };
+            for y in 0..h {
+                for x in 0..w {
+                    if (x as f64 - c.cx_px).hypot(y as f64 - c.cy_px) <= c.r_px {
+                        for ch in 0..3 {
+                            images[((k * 3 + ch) * h + y) * w + x] = 40.0 * (ch + 1) as f32;
+                        }
+                    }
+                }
+            }
+            pairs.push((k, c));
+        }
+        let forward = |m: &CircleCnn, rows: &[usize], device: &Device| {
+            let x: Vec<f32> = rows
+                .iter()
+                .flat_map(|&k| images[k * 3 * h * w..(k + 1) * 3 * h * w].iter().copied())
+                .collect();
+            m.forward(Tensor::<1>::from_floats(x.as_slice(), device).reshape([rows.len(), 3, h, w]))
+        };
+        let (train, rest) = pairs.split_at(32);
+        let (val, test) = rest.split_at(8);
+        let opts = TrainOptions {
+            epochs: 3,
+            batch_size: 8,
+            lr: 3e-3,
+        };
+        let rows: Vec<usize> = test.iter().map(|t| t.0).collect();
+        let run = |device: &Device| {
+            let cpu = Device::flex().autodiff();
+            let model = sparsh_ssl::train::seeded_module(&cpu, 3, || CircleCnn::new(&cpu));
+            let t0 = std::time::Instant::now();
+            let fitted = fit(model, [w, h], &forward, train, val, opts, 1, device);
+            let preds = fitted.predict(&forward, &rows);
+            eprintln!("{device:?}: {:.1} s", t0.elapsed().as_secs_f64());
+            (fitted.best_epoch, fitted.val_preds, preds)
+        };
+        let (a, b) = (run(&Device::flex()), run(&gpu));
+        assert_eq!(a.0, b.0, "epoch chosen");
+        let worst =
+            a.1.iter()
+                .chain(&a.2)
+                .zip(b.1.iter().chain(&b.2))
+                .map(|(p, q)| {
+                    (p.cx_px - q.cx_px)
+                        .abs()
+                        .max((p.cy_px - q.cy_px).abs())
+                        .max((p.r_px - q.r_px).abs())
+                })
+                .fold(0f64, f64::max);
+        eprintln!("circles differ by up to {worst:.2e} px");
+        assert!(worst <= 1e-2, "circles differ by {worst:.2e} px");
     }
 }
