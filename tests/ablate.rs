@@ -7,7 +7,7 @@
 use std::path::{Path, PathBuf};
 
 mod common;
-use common::{RECIPE, assert_user_error, sparsh, stderr};
+use common::{RECIPE, assert_device_refused, assert_user_error, sparsh, stderr};
 
 fn checkout() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..")
@@ -197,20 +197,9 @@ fn bad_ablation_files_get_one_line_errors() {
 fn a_device_ablate_cannot_use_is_a_one_line_error() {
     let tmp = tempfile::tempdir().unwrap();
     let out_dir = tmp.path().join("run");
-    let run = |device: &[&str]| {
-        let mut args = vec![
-            "ablate",
-            "--config",
-            "missing.toml",
-            "--out",
-            out_dir.to_str().unwrap(),
-        ];
-        args.extend_from_slice(device);
-        sparsh(&args)
-    };
-    #[cfg(not(feature = "cuda"))]
-    assert_user_error(&run(&["--device", "cuda"]), "--features cuda");
-    assert_user_error(&run(&["--devices", "0,1"]), "one device");
-    assert_user_error(&run(&["--devices", "x"]), "not a device index");
-    assert!(!out_dir.exists());
+    let out = out_dir.to_str().unwrap();
+    assert_device_refused(
+        &["ablate", "--config", "missing.toml", "--out", out],
+        &out_dir,
+    );
 }

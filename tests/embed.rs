@@ -8,7 +8,10 @@ use sparsh_ssl::embed::{FrozenEncoder, Pool};
 use sparsh_ssl::recipe::Recipe;
 
 mod common;
-use common::{RECIPE, assert_user_error, generate, sparsh, stderr, wgpu_or_skip, write_scene};
+use common::{
+    RECIPE, assert_device_refused, assert_user_error, generate, sparsh, stderr, wgpu_or_skip,
+    write_scene,
+};
 
 /// Two sequences of eight frames on a small sensor.
 const SCENE: &str = r#"
@@ -335,22 +338,14 @@ const REL_TOL: f32 = 1e-4;
 fn a_device_embed_cannot_use_is_a_one_line_error() {
     let tmp = tempfile::tempdir().unwrap();
     let out_npy = tmp.path().join("f.npy");
-    let run = |device: &[&str]| {
-        let mut args = vec![
-            "embed",
-            "--encoder",
-            "missing.safetensors",
-            "--data",
-            "missing",
-            "--out",
-            out_npy.to_str().unwrap(),
-        ];
-        args.extend_from_slice(device);
-        sparsh(&args)
-    };
-    #[cfg(not(feature = "cuda"))]
-    assert_user_error(&run(&["--device", "cuda"]), "--features cuda");
-    assert_user_error(&run(&["--devices", "0,1"]), "one device");
-    assert_user_error(&run(&["--devices", "x"]), "not a device index");
-    assert!(!out_npy.exists());
+    let args = [
+        "embed",
+        "--encoder",
+        "missing.safetensors",
+        "--data",
+        "missing",
+        "--out",
+        out_npy.to_str().unwrap(),
+    ];
+    assert_device_refused(&args, &out_npy);
 }

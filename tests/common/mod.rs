@@ -45,6 +45,23 @@ pub fn assert_user_error(out: &Output, needle: &str) {
     assert!(err.contains(needle), "expected `{needle}` in: {err}");
 }
 
+/// `args` with device flags the build or the command cannot use (a CUDA device in a build
+/// without the feature, several devices for a command that computes on one, an index that is not
+/// a number) is refused on one line each time, and `out` is never written.
+#[allow(dead_code)] // the learned commands' tests only
+pub fn assert_device_refused(args: &[&str], out: &Path) {
+    let run = |device: &[&str]| {
+        let mut all = args.to_vec();
+        all.extend_from_slice(device);
+        sparsh(&all)
+    };
+    #[cfg(not(feature = "cuda"))]
+    assert_user_error(&run(&["--device", "cuda"]), "--features cuda");
+    assert_user_error(&run(&["--devices", "0,1"]), "one device");
+    assert_user_error(&run(&["--devices", "x"]), "not a device index");
+    assert!(!out.exists(), "{} was written", out.display());
+}
+
 /// Writes `text` as `dir/scene.toml`.
 #[allow(dead_code)] // not every test crate writes scenes
 pub fn write_scene(dir: &Path, text: &str) -> PathBuf {
