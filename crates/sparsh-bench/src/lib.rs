@@ -31,18 +31,6 @@ pub mod run;
 pub mod stats;
 pub mod tasks;
 
-/// `module` on `device`: returned as it is when it lives there already (so a CPU run computes
-/// exactly as it always did), else forked there. Models are drawn on the CPU under their seed
-/// and moved with this, so a seed starts from the same weights on every device. Pass an
-/// autodiff device (`device.clone().autodiff()`) for a module that is to be trained.
-pub fn on_device<M: burn::module::Module>(module: M, device: &burn::prelude::Device) -> M {
-    if module.devices().iter().all(|d| d == device) {
-        module
-    } else {
-        module.fork(device)
-    }
-}
-
 /// Errors of TacBench; each message names the file or field at fault.
 #[derive(Debug, thiserror::Error)]
 pub enum Error {

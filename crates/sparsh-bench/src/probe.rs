@@ -241,7 +241,7 @@ fn fit<M: Module + Clone>(
 ) -> Fit {
     let plain = device.clone().inner();
     let device = device.clone().inner().autodiff();
-    let mut model = crate::on_device(model, &device);
+    let mut model = sparsh_ssl::device::on_device(model, &device);
     let width = head.target_width(classes);
     let targets = |rows: &[usize]| {
         let t: Vec<f32> = rows

@@ -688,7 +688,7 @@ fn encode_all(
     device: &Device,
 ) -> Tokens {
     let device = device.clone().inner();
-    let enc = crate::on_device(vit.valid(), &device);
+    let enc = sparsh_ssl::device::on_device(vit.valid(), &device);
     let mut values = Vec::new();
     let mut dims = [0, 0, 0];
     let rows: Vec<usize> = (0..n).collect();

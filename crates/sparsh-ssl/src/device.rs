@@ -6,6 +6,7 @@
 use std::fmt;
 use std::str::FromStr;
 
+use burn::module::Module;
 use burn::prelude::Device;
 use burn::tensor::DeviceType;
 
@@ -206,4 +207,16 @@ pub fn parse_indices(s: &str) -> Result<Vec<usize>, String> {
                 .map_err(|_| format!("--devices: '{p}' is not a device index (e.g. 0,1)"))
         })
         .collect()
+}
+
+/// `module` on `device`: returned as it is when it lives there already (so a CPU run computes
+/// exactly as it always did), else forked there. Models are drawn on the CPU under their seed
+/// and moved with this, so a seed starts from the same weights on every device. Pass an
+/// autodiff device (`device.clone().autodiff()`) for a module that is to be trained.
+pub fn on_device<M: Module>(module: M, device: &Device) -> M {
+    if module.devices().iter().all(|d| d == device) {
+        module
+    } else {
+        module.fork(device)
+    }
 }

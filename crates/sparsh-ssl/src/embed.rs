@@ -60,9 +60,7 @@ impl FrozenEncoder {
     /// The encoder on `device` (loaded on the CPU, then moved): returned as it is when it lives
     /// there already, so on the CPU it computes exactly as it did before the move existed.
     pub fn to_device(mut self, device: &Device) -> Self {
-        if !self.vit.devices().iter().all(|d| d == device) {
-            self.vit = self.vit.fork(device);
-        }
+        self.vit = crate::device::on_device(self.vit, device);
         self
     }
 

@@ -369,13 +369,11 @@ pub fn attentive_score(
     let (ymean, ystd) = column_stats(&train, 3, 1e-9, |i, k| y[i][k]);
     let heads = if d % 64 == 0 { d / 64 } else { 1 };
     let cpu = Device::flex().autodiff();
-    let mut probe = crate::train::seeded_module(&cpu, seed, || {
+    let probe = crate::train::seeded_module(&cpu, seed, || {
         AttentiveProbeConfig::new(d, heads).init(&cpu)
     });
     let device = device.clone().autodiff();
-    if device != cpu {
-        probe = probe.fork(&device);
-    }
+    let mut probe = crate::device::on_device(probe, &device);
     let mut optim = AdamWConfig::new().with_weight_decay(0.01).init();
     let total_steps = (epochs * train.len().div_ceil(32)).max(1);
     let mut step = 0;

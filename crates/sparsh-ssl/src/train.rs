@@ -110,12 +110,10 @@ impl Trainee {
     /// CPU under the recipe's seed and then moved, so every device starts from the same weights.
     pub fn init(recipe: &Recipe, device: &Device) -> Result<Self, Error> {
         let cpu = Device::flex().autodiff();
-        let model = Self::init_on(recipe, &cpu)?;
-        Ok(if *device == cpu {
-            model
-        } else {
-            model.fork(device)
-        })
+        Ok(crate::device::on_device(
+            Self::init_on(recipe, &cpu)?,
+            device,
+        ))
     }
 
     fn init_on(recipe: &Recipe, device: &Device) -> Result<Self, Error> {

@@ -348,7 +348,7 @@ impl ProbeEncoder {
     /// Patch tokens of the stacked inputs, `[n, tokens, dim]`, computed on `device`.
     fn encode(&self, vit: &Vit, inputs: &[f32], device: &Device) -> (Vec<f32>, [usize; 3]) {
         let device = device.clone().inner();
-        let vit = crate::on_device(vit.clone().valid(), &device);
+        let vit = sparsh_ssl::device::on_device(vit.clone().valid(), &device);
         let [h, w] = self.size;
         let per = 6 * h * w;
         let n = inputs.len() / per;

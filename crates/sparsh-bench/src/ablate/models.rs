@@ -223,7 +223,7 @@ pub fn fit<M: Module + Clone>(
     device: &Device,
 ) -> Fitted<M> {
     let device = device.clone().inner().autodiff();
-    let mut model = crate::on_device(model, &device);
+    let mut model = sparsh_ssl::device::on_device(model, &device);
     let circles: Vec<Circle> = train.iter().map(|t| t.1).collect();
     let scale = CircleScale::of(&circles, size);
     let targets = |pairs: &[&(usize, Circle)], device: &Device| {
@@ -281,6 +281,51 @@ pub fn fit<M: Module + Clone>(
 mod tests {
     use super::*;
 
+    /// The disc images' height and width (px).
+    const DISC_H: usize = 24;
+    const DISC_W: usize = 32;
+
+    /// `n` images (3 channels, row-major) each holding one bright disc drawn at random under
+    /// `seed`, and each image's index with its disc.
+    fn discs(n: usize, seed: u64) -> (Vec<f32>, Vec<(usize, Circle)>) {
+        let (h, w) = (DISC_H, DISC_W);
+        let mut rng = Rng::new(seed);
+        let mut images = vec![0.0f32; n * 3 * h * w];
+        let mut pairs = Vec::new();
+        for k in 0..n {
+            let c = Circle {
+                cx_px: rng.range_f64(8.0, 24.0),
+                cy_px: rng.range_f64(7.0, 17.0),
+                r_px: rng.range_f64(3.0, 6.0),
+            };
+            for y in 0..h {
+                for x in 0..w {
+                    if (x as f64 - c.cx_px).hypot(y as f64 - c.cy_px) <= c.r_px {
+                        for ch in 0..3 {
+                            images[((k * 3 + ch) * h + y) * w + x] = 40.0 * (ch + 1) as f32;
+                        }
+                    }
+                }
+            }
+            pairs.push((k, c));
+        }
+        (images, pairs)
+    }
+
+    /// The CNN's forward pass on the disc images of `rows`.
+    fn disc_forward(
+        images: &[f32],
+    ) -> impl Fn(&CircleCnn, &[usize], &Device) -> Tensor<2> + Sync + '_ {
+        let (h, w) = (DISC_H, DISC_W);
+        move |m: &CircleCnn, rows: &[usize], device: &Device| {
+            let x: Vec<f32> = rows
+                .iter()
+                .flat_map(|&k| images[k * 3 * h * w..(k + 1) * 3 * h * w].iter().copied())
+                .collect();
+            m.forward(Tensor::<1>::from_floats(x.as_slice(), device).reshape([rows.len(), 3, h, w]))
+        }
+    }
+
     #[test]
     fn the_scale_round_trips_and_its_mean_is_the_average_circle() {
         let circles = [
@@ -320,39 +365,11 @@ mod tests {
     /// than the mean circle, on discs it never saw.
     #[test]
     fn the_cnn_locates_discs_it_was_not_trained_on() {
-        let size = [24, 32];
-        let mut rng = Rng::new(5);
-        let n = 320;
-        let (h, w) = (size[0], size[1]);
-        let mut images = vec![0.0f32; n * 3 * h * w];
-        let mut circles = Vec::new();
-        for k in 0..n {
-            let c = Circle {
-                cx_px: rng.range_f64(8.0, 24.0),
-                cy_px: rng.range_f64(7.0, 17.0),
-                r_px: rng.range_f64(3.0, 6.0),
-            };
-            for y in 0..h {
-                for x in 0..w {
-                    if (x as f64 - c.cx_px).hypot(y as f64 - c.cy_px) <= c.r_px {
-                        for ch in 0..3 {
-                            images[((k * 3 + ch) * h + y) * w + x] = 40.0 * (ch + 1) as f32;
-                        }
-                    }
-                }
-            }
-            circles.push(c);
-        }
+        let (h, w) = (DISC_H, DISC_W);
+        let (images, pairs) = discs(320, 5);
         let device = Device::flex().autodiff();
         let model = sparsh_ssl::train::seeded_module(&device, 3, || CircleCnn::new(&device));
-        let forward = |m: &CircleCnn, rows: &[usize], device: &Device| {
-            let x: Vec<f32> = rows
-                .iter()
-                .flat_map(|&k| images[k * 3 * h * w..(k + 1) * 3 * h * w].iter().copied())
-                .collect();
-            m.forward(Tensor::<1>::from_floats(x.as_slice(), device).reshape([rows.len(), 3, h, w]))
-        };
-        let pairs: Vec<(usize, Circle)> = (0..n).map(|k| (k, circles[k])).collect();
+        let forward = disc_forward(&images);
         let (train, test) = pairs.split_at(256);
         let opts = TrainOptions {
             epochs: 30,
@@ -402,34 +419,9 @@ mod tests {
                 return;
             }
         };
-        let (h, w, n) = (24, 32, 48);
-        let mut rng = Rng::new(7);
-        let mut images = vec![0.0f32; n * 3 * h * w];
-        let mut pairs = Vec::new();
-        for k in 0..n {
-            let c = Circle {
-                cx_px: rng.range_f64(8.0, 24.0),
-                cy_px: rng.range_f64(7.0, 17.0),
-                r_px: rng.range_f64(3.0, 6.0),
-            };
-            for y in 0..h {
-                for x in 0..w {
-                    if (x as f64 - c.cx_px).hypot(y as f64 - c.cy_px) <= c.r_px {
-                        for ch in 0..3 {
-                            images[((k * 3 + ch) * h + y) * w + x] = 40.0 * (ch + 1) as f32;
-                        }
-                    }
-                }
-            }
-            pairs.push((k, c));
-        }
-        let forward = |m: &CircleCnn, rows: &[usize], device: &Device| {
-            let x: Vec<f32> = rows
-                .iter()
-                .flat_map(|&k| images[k * 3 * h * w..(k + 1) * 3 * h * w].iter().copied())
-                .collect();
-            m.forward(Tensor::<1>::from_floats(x.as_slice(), device).reshape([rows.len(), 3, h, w]))
-        };
+        let (h, w) = (DISC_H, DISC_W);
+        let (images, pairs) = discs(48, 7);
+        let forward = disc_forward(&images);
         let (train, rest) = pairs.split_at(32);
         let (val, test) = rest.split_at(8);
         let opts = TrainOptions {

@@ -646,7 +646,7 @@ pub fn eval_run(
             None => pretrained.valid(),
             Some(k) => random_encoder(&recipe, k)?.valid(),
         };
-        let vit = crate::on_device(vit, device);
+        let vit = sparsh_ssl::device::on_device(vit, device);
         let path = run.join("decoders").join(&d.file);
         let model = FieldModel {
             decoder: dec_cfg.init(&Device::flex()),
@@ -654,7 +654,7 @@ pub fn eval_run(
         }
         .try_load_file(&path)
         .map_err(|e| Error::file(&path, format!("{e:?}")))?;
-        let model = crate::on_device(model, device);
+        let model = sparsh_ssl::device::on_device(model, device);
         let stats = read_stats(run, &d.name)?;
         let t0 = Instant::now();
         let tokens_of = |list: &[Pair]| {

@@ -86,7 +86,7 @@ pub fn encode_inputs(
 ) -> HookTokens {
     // an encoder drawn on the autodiff device would record (and keep) every activation
     let device = device.clone().inner();
-    let vit = crate::on_device(vit.valid(), &device);
+    let vit = sparsh_ssl::device::on_device(vit.valid(), &device);
     let hooks = hook_blocks(vit.blocks.len());
     let [h, w] = size;
     let (mut values, mut dims) = (Vec::new(), [n, hooks.len(), 0, vit.dim()]);
@@ -213,7 +213,7 @@ pub fn train(
         shading: Shading::new(&cpu),
     });
     let device = device.clone().inner().autodiff();
-    let mut model = crate::on_device(model, &device);
+    let mut model = sparsh_ssl::device::on_device(model, &device);
     let [h, w] = config.img_size;
     let frames = |data: &FramePairs, pairs: &[Pair], rows: &[usize], back: bool| {
         let v: Vec<f32> = rows
