@@ -179,15 +179,21 @@ fn bad_ablation_files_get_one_line_errors() {
         "weights = \"missing.safetensors\"",
     );
     std::fs::write(&cfg, text).unwrap();
-    assert_user_error(
-        &sparsh(&[
-            "ablate",
-            "--config",
-            cfg.to_str().unwrap(),
-            "--out",
-            dir.path().join("run").to_str().unwrap(),
-        ]),
-        "probe.weights",
+    let out = dir.path().join("run");
+    let refused = sparsh(&[
+        "ablate",
+        "--config",
+        cfg.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert_user_error(&refused, "probe.weights");
+    // the hint is a command that runs as given (pretrain needs its data)
+    assert_user_error(&refused, "--data DATASET --out RUN");
+    // nothing that a re-run would have to --resume
+    assert!(
+        !out.join("ablation.toml").exists(),
+        "a refused config left its record behind"
     );
 }
 

@@ -236,6 +236,16 @@ pub struct RunOptions {
     pub device: Device,
 }
 
+/// What to say of an encoder file that does not exist: how to make it with its recipe.
+pub(crate) fn missing_weights(weights: &Path, recipe: &Path) -> String {
+    format!(
+        "{}: no such file (pretrain it first: sparsh pretrain --config {} --data DATASET --out RUN, \
+         then point weights at RUN/encoder.safetensors)",
+        weights.display(),
+        recipe.display()
+    )
+}
+
 /// The randomly initialised encoder a run of `recipe` with `seed` starts from.
 pub fn random_encoder(recipe: &Recipe, seed: u64) -> Result<Vit, Error> {
     let drawn = Recipe {
@@ -280,12 +290,7 @@ pub fn encoders(
             return Err(Error::config(
                 &cfg.path,
                 format!("encoder[{i}].weights"),
-                format!(
-                    "{}: no such file (pretrain it first: sparsh pretrain --config {} --out RUN, \
-                     then point weights at RUN/encoder.safetensors)",
-                    e.weights.display(),
-                    e.recipe.display()
-                ),
+                missing_weights(&e.weights, &e.recipe),
             ));
         }
         let vit = sparsh_ssl::weights::load_encoder(random_encoder(&recipe, 0)?, &e.weights, None)

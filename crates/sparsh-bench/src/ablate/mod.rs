@@ -173,7 +173,6 @@ pub fn run(
     for v in &config.variants {
         config::variant_scene(config, v, None)?;
     }
-    crate::run::write_atomic(&copy, config.source.as_bytes())?;
     let eff = Effective {
         seeds: if opts.quick { 1 } else { config.seeds },
         bootstrap: if opts.quick { 100 } else { config.bootstrap },
@@ -232,6 +231,9 @@ pub fn run(
         config.test_frames,
         config.pack.display()
     ));
+    // The run's record is written once the config has been checked whole (pack, test frames,
+    // probe weights): a config that fails leaves nothing that --resume would have to continue.
+    crate::run::write_atomic(&copy, config.source.as_bytes())?;
     let mut rows = Vec::new();
     for (i, variant) in config.variants.iter().enumerate() {
         let dir = out.join("variants").join(slug(&variant.name));
@@ -302,12 +304,7 @@ impl ProbeEncoder {
                 return Err(Error::config(
                     &config.path,
                     "probe.weights",
-                    format!(
-                        "{}: no such file (pretrain it first: sparsh pretrain --config {} --out RUN, \
-                         then point weights at RUN/encoder.safetensors)",
-                        w.display(),
-                        p.recipe.display()
-                    ),
+                    crate::run::missing_weights(w, &p.recipe),
                 ));
             }
             Some(w) => Some(
