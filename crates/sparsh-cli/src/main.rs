@@ -276,7 +276,7 @@ enum Command {
         /// Output directory (study.csv, stability.csv, solver_table.csv, PNG and SVG charts).
         #[arg(long)]
         out: PathBuf,
-        /// Coarse grids and one run per point (under a minute).
+        /// Coarse grids and one run per point (about 2 minutes on 2 cores).
         #[arg(long)]
         quick: bool,
         /// Also write the solver table here (assets/solver_table.csv is the one compiled in).
