@@ -209,6 +209,15 @@ pub fn parse_indices(s: &str) -> Result<Vec<usize>, String> {
         .collect()
 }
 
+/// The device `module` computes on (the CPU for a module without parameters).
+pub fn device_of<M: Module>(module: &M) -> Device {
+    module
+        .devices()
+        .first()
+        .cloned()
+        .unwrap_or_else(Device::flex)
+}
+
 /// `module` on `device`: returned as it is when it lives there already (so a CPU run computes
 /// exactly as it always did), else forked there. Models are drawn on the CPU under their seed
 /// and moved with this, so a seed starts from the same weights on every device. Pass an

@@ -66,11 +66,7 @@ impl FrozenEncoder {
 
     /// The device the encoder computes on.
     pub fn device(&self) -> Device {
-        self.vit
-            .devices()
-            .first()
-            .cloned()
-            .unwrap_or_else(Device::flex)
+        crate::device::device_of(&self.vit)
     }
 
     /// Frame offsets back in time of one sample, in input order (`[0, 5]`: I_t, then I_{t−5}).

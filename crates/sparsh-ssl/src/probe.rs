@@ -159,7 +159,7 @@ impl ProbeSet {
     /// `seed`) when that is above 0. Both run on the encoder's device.
     pub fn score(&self, encoder: &Vit, attentive_epochs: usize, seed: u64) -> ProbeScore {
         let enc = encoder.clone().valid();
-        let device = enc.devices().first().cloned().unwrap_or_else(Device::flex);
+        let device = crate::device::device_of(&enc);
         let (mut tokens, mut dims) = (Vec::new(), [0, 0, 0]);
         for b in &self.batches {
             let x = Tensor::<1>::from_floats(b.values.as_slice(), &device).reshape(b.shape);

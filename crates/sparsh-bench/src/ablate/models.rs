@@ -191,11 +191,7 @@ fn predict<M: Module + Clone>(
     rows: &[usize],
 ) -> Vec<Circle> {
     let valid = model.valid();
-    let device = valid
-        .devices()
-        .first()
-        .cloned()
-        .unwrap_or_else(Device::flex);
+    let device = sparsh_ssl::device::device_of(&valid);
     let mut out = Vec::with_capacity(rows.len());
     for chunk in rows.chunks(64) {
         let y = forward(&valid, chunk, &device)

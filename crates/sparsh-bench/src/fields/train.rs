@@ -291,10 +291,7 @@ pub struct Prediction {
 
 /// Predictions for every row of `tokens`, computed on the device `model` lives on.
 pub fn predict(model: &FieldModel, tokens: &HookTokens) -> Vec<Prediction> {
-    let device = model
-        .devices()
-        .first()
-        .map_or_else(Device::flex, |d| d.clone().inner());
+    let device = sparsh_ssl::device::device_of(model).inner();
     let rows: Vec<usize> = (0..tokens.dims[0]).collect();
     let mut out = Vec::with_capacity(rows.len());
     for chunk in rows.chunks(16) {
