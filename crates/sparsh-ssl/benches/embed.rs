@@ -1,9 +1,11 @@
 //! Encoder forward benchmark: frames/s of the frozen encoder (host input → mean-pooled features on
-//! the host, [`sparsh_ssl::embed::encode`], the path of `sparsh embed`) for ViT-tiny, ViT-small
-//! and the CPU recipes' 6-block ViT-tiny, at the CPU recipes' input (96×72, patch 8) and the
-//! official 224×224 at patch 16, 6 channels, on 1 and 2 threads, at batch 1 (latency) and 16
-//! (throughput). Each configuration also runs `benches/torch_embed.py` (the same encoder in
-//! PyTorch) when python3 can import torch, and the table gives ours / torch.
+//! the host) for ViT-tiny, ViT-small and the CPU recipes' 6-block ViT-tiny, at the CPU recipes'
+//! input (96×72, patch 8) and the official 224×224 at patch 16, 6 channels, on 1 and 2 threads,
+//! at batch 1 (latency) and 16 (throughput): "ours" is the host pass of `sparsh embed` on the CPU
+//! ([`sparsh_ssl::host::HostVit`]), "burn graph" the same encoder as burn ops
+//! ([`sparsh_ssl::embed::encode`], the path of every other device). Each configuration also runs
+//! `benches/torch_embed.py` (the same encoder in PyTorch) when python3 can import torch, and the
+//! table gives ours / torch.
 //! `cargo bench -p sparsh-ssl --bench embed [-- NAME …]` (release; names `tiny`, `small`,
 //! `tiny6`, `recipe`, `official`). Medians of the timed passes after a warm-up (at least 3
 //! passes and 1 s).
@@ -18,6 +20,7 @@ use std::time::Instant;
 
 use burn::prelude::*;
 use sparsh_ssl::embed::{Pool, encode};
+use sparsh_ssl::host::HostVit;
 use sparsh_ssl::vit::VitConfig;
 
 /// The 1-, 5- and 15-minute load averages (the machine's other work).
@@ -32,15 +35,31 @@ fn median(mut v: Vec<f64>) -> f64 {
     v[v.len() / 2]
 }
 
-/// Frames/s of the forward pass of `cfg` at `batch` on the current thread pool.
-fn ours(cfg: &VitConfig, batch: usize) -> f64 {
+/// Median seconds of `pass` after a warm-up (at least 3 passes and 1 s, at most 50).
+fn seconds<T>(pass: impl Fn() -> T) -> f64 {
+    pass();
+    let start = Instant::now();
+    let mut times = Vec::new();
+    while times.len() < 3 || (start.elapsed().as_secs_f64() < 1.0 && times.len() < 50) {
+        let t0 = Instant::now();
+        std::hint::black_box(pass());
+        times.push(t0.elapsed().as_secs_f64());
+    }
+    median(times)
+}
+
+/// Frames/s of the forward pass of `cfg` at `batch` on the current thread pool: the host pass
+/// ([`HostVit`], what `sparsh embed` runs on the CPU) and burn's graph ([`encode`]).
+fn ours(cfg: &VitConfig, batch: usize) -> (f64, f64) {
     let device = Device::flex();
     let vit = cfg.init(&device);
+    let host = HostVit::new(&vit);
     let [h, w] = cfg.img_size;
+    let shape = [1, cfg.in_chans, h, w];
     let input: Vec<f32> = (0..batch * cfg.in_chans * h * w)
         .map(|i| (i % 251) as f32 / 251.0)
         .collect();
-    let pass = || {
+    let graph = || {
         let x = Tensor::<1>::from_floats(input.as_slice(), &device).reshape([
             batch,
             1,
@@ -50,15 +69,11 @@ fn ours(cfg: &VitConfig, batch: usize) -> f64 {
         ]);
         encode(&vit, x, Pool::Mean)
     };
-    pass();
-    let start = Instant::now();
-    let mut times = Vec::new();
-    while times.len() < 3 || (start.elapsed().as_secs_f64() < 1.0 && times.len() < 50) {
-        let t0 = Instant::now();
-        std::hint::black_box(pass());
-        times.push(t0.elapsed().as_secs_f64());
-    }
-    batch as f64 / median(times)
+    let batch = batch as f64;
+    (
+        batch / seconds(|| host.embed(&input, shape, Pool::Mean)),
+        batch / seconds(graph),
+    )
 }
 
 /// Frames/s of the PyTorch encoder, `None` without python3 and torch.
@@ -110,9 +125,9 @@ fn main() {
             .unwrap_or("not importable (no comparison)")
     );
     println!(
-        "| encoder | input | threads | batch | ours frames/s | torch frames/s | ours / torch |"
+        "| encoder | input | threads | batch | ours frames/s | burn graph frames/s | torch frames/s | ours / torch |"
     );
-    println!("|---|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|---|");
     for (name, width, depth, heads) in models.into_iter().filter(|m| named(&model_names, m.0)) {
         for (input, [h, w, p]) in inputs.into_iter().filter(|i| named(&input_names, i.0)) {
             // the CPU recipes' encoder only at the CPU recipes' input
@@ -129,7 +144,7 @@ fn main() {
                     .build()
                     .expect("thread pool");
                 for batch in [1, 16] {
-                    let fps = pool.install(|| ours(&cfg, batch));
+                    let (fps, graph) = pool.install(|| ours(&cfg, batch));
                     let reference = version
                         .as_ref()
                         .and_then(|_| torch(name, [h, w, p], threads, batch));
@@ -137,7 +152,7 @@ fn main() {
                         (format!("{t:.1}"), format!("{:.2}", fps / t))
                     });
                     println!(
-                        "| {name} ({width}×{depth}) | {h}×{w}/{p} | {threads} | {batch} | {fps:.1} | {t} | {ratio} |"
+                        "| {name} ({width}×{depth}) | {h}×{w}/{p} | {threads} | {batch} | {fps:.1} | {graph:.1} | {t} | {ratio} |"
                     );
                 }
             }

@@ -5,8 +5,9 @@
 //! objectives, four frames for V-JEPA), each frame preprocessed against the sequence's no-contact
 //! background ([`crate::data::preprocess`]). An offset reaching before the first frame reads the
 //! no-contact frame (the background against itself), so every frame of a sequence has features.
-//! Inference runs without autodiff on the CPU, or on the device the encoder was moved to
-//! ([`FrozenEncoder::to_device`]).
+//! Inference runs without autodiff: on the CPU as the host pass of [`crate::host`] (weights laid
+//! out once for the GEMM, two parallel regions a block), on any other device as burn ops on the
+//! device the encoder was moved to ([`FrozenEncoder::to_device`]).
 
 use std::path::Path;
 
@@ -16,6 +17,7 @@ use rayon::prelude::*;
 
 use crate::Error;
 use crate::data::{GeneratedSequence, preprocess, read_image};
+use crate::host::HostVit;
 use crate::recipe::Recipe;
 use crate::vit::Vit;
 
@@ -32,6 +34,8 @@ pub enum Pool {
 #[derive(Debug, Clone)]
 pub struct FrozenEncoder {
     vit: Vit,
+    /// The host pass's copy of the weights while the encoder is on the CPU.
+    host: Option<HostVit>,
     offsets: Vec<usize>,
     /// `[frames, channels, height, width]` of one sample.
     sample_shape: [usize; 4],
@@ -45,6 +49,7 @@ impl FrozenEncoder {
         let cfg = recipe.encoder_config()?;
         let vit = crate::weights::load_encoder(cfg.init(&Device::flex()), weights, None)?;
         Ok(Self {
+            host: Some(HostVit::new(&vit)),
             vit,
             offsets: recipe.frame_offsets(),
             sample_shape: [
@@ -61,6 +66,9 @@ impl FrozenEncoder {
     /// there already, so on the CPU it computes exactly as it did before the move existed.
     pub fn to_device(mut self, device: &Device) -> Self {
         self.vit = crate::device::on_device(self.vit, device);
+        if self.device() != Device::flex() {
+            self.host = None;
+        }
         self
     }
 
@@ -117,6 +125,9 @@ impl FrozenEncoder {
     pub fn embed_inputs(&self, inputs: &[f32], pool: Pool) -> Vec<f32> {
         let n = inputs.len() / self.sample_len();
         assert_eq!(n * self.sample_len(), inputs.len(), "whole samples");
+        if let Some(host) = &self.host {
+            return host.embed(inputs, self.sample_shape, pool);
+        }
         let [f, c, h, w] = self.sample_shape;
         let x = Tensor::<1>::from_floats(inputs, &self.device()).reshape([n, f, c, h, w]);
         encode(&self.vit, x, pool)
@@ -181,8 +192,8 @@ impl FrozenEncoder {
 }
 
 /// Features of a batch of clips `[batch, frames, channels, height, width]` on the host,
-/// row-major `[batch, dim]` pooled, else `[batch, tokens, dim]`. `vit` and `x` are on one
-/// device.
+/// row-major `[batch, dim]` pooled, else `[batch, tokens, dim]`, as burn ops. `vit` and `x` are
+/// on one device. (On the CPU a [`FrozenEncoder`] runs the faster [`HostVit`] instead.)
 ///
 /// On the CPU the batch is split into one part per thread of the rayon pool, encoded in parallel: burn's
 /// CPU backend runs element-wise ops (residual adds, softmax, copies) on the calling thread, so

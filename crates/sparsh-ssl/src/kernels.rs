@@ -291,6 +291,30 @@ fn zip_into<F: Fn(f32, f32) -> f32>(a: &mut [f32], b: &[f32], f: &F) {
     a.iter_mut().zip(b).for_each(|(a, &b)| *a = f(*a, b));
 }
 
+/// The exact GELU of every element of `x`, in place.
+pub(crate) fn gelu_in_place(x: &mut [f32]) {
+    map_into(x, None, &gelu_f32);
+}
+
+/// `x ← softmax(x)`: `e^{x − max x}` over its sum (taken in eight partial sums, fixed order).
+#[multiversion(targets("x86_64+avx512f+avx512vl+avx512bw+avx512dq", "x86_64+avx2+fma"))]
+pub(crate) fn softmax_in_place(x: &mut [f32]) {
+    let max = x.iter().fold(f32::NEG_INFINITY, |m, &v| m.max(v));
+    x.iter_mut().for_each(|v| *v = exp_f32(*v - max));
+    let mut acc = [0.0f32; 8];
+    let chunks = x.chunks_exact(8);
+    let tail: f32 = chunks.remainder().iter().sum();
+    for c in chunks {
+        for k in 0..8 {
+            acc[k] += c[k];
+        }
+    }
+    let sum =
+        ((acc[0] + acc[4]) + (acc[1] + acc[5])) + ((acc[2] + acc[6]) + (acc[3] + acc[7])) + tail;
+    let inv = 1.0 / sum;
+    x.iter_mut().for_each(|v| *v *= inv);
+}
+
 /// GELU of an f32 `flex` tensor (other dtypes: burn's).
 fn gelu_flex(x: FlexTensor) -> FlexTensor {
     if x.dtype() != DType::F32 {
@@ -365,7 +389,7 @@ fn layer_norm_forward(
 /// The rows of one task of [`layer_norm_forward`]: `o` from `xs`, `[mean, 1 / √(σ² + ε)]` per
 /// row into `st`.
 #[multiversion(targets("x86_64+avx512f+avx512vl+avx512bw+avx512dq", "x86_64+avx2+fma"))]
-fn layer_norm_rows(
+pub(crate) fn layer_norm_rows(
     o: &mut [f32],
     st: &mut [f32],
     xs: &[f32],

@@ -18,6 +18,7 @@ pub mod device;
 pub mod dino;
 pub mod ema;
 pub mod embed;
+pub mod host;
 pub mod jepa;
 pub mod kernels;
 pub mod mae;

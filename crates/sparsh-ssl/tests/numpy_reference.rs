@@ -1,5 +1,6 @@
-//! Parity of the encoder's forward pass with an independent NumPy ViT (`tests/numpy_vit.py`),
-//! weights passed through safetensors under the official key names. Skips, saying so, when
+//! Parity of the encoder's forward pass (burn's graph and the host pass of `sparsh embed`) with an
+//! independent NumPy ViT (`tests/numpy_vit.py`), weights passed through safetensors under the
+//! official key names. Skips, saying so, when
 //! `python3` with numpy is unavailable (`pip install numpy`), unless `SPARSH_REQUIRE_PYTHON` is
 //! set, when it fails instead.
 
@@ -10,6 +11,8 @@ use std::path::Path;
 use burn::prelude::*;
 use common::{Named, normals, python_ready, run_script, write_safetensors};
 use safetensors::SafeTensors;
+use sparsh_ssl::embed::Pool;
+use sparsh_ssl::host::HostVit;
 use sparsh_ssl::rng::Rng;
 use sparsh_ssl::vit::VitConfig;
 use sparsh_ssl::weights::{load_encoder, save_encoder};
@@ -129,6 +132,25 @@ fn check(cfg: VitConfig, seed: u64) {
         .fold(0.0f64, |m, (a, b)| m.max((*a as f64 - b).abs()));
     eprintln!("max abs difference {err:.3e} (largest value {scale:.3})");
     assert!(err / scale <= 1e-4, "relative error {:.3e}", err / scale);
+
+    // the host pass of `sparsh embed` (patch tokens only) against the same reference
+    let host =
+        HostVit::new(&vit).embed(&input, [shape[1], shape[2], shape[3], shape[4]], Pool::None);
+    let d = cfg.embed_dim;
+    let patches = refv
+        .chunks((r + cfg.num_patches()) * d)
+        .flat_map(|sample| &sample[r * d..]);
+    let host_err = host
+        .iter()
+        .zip(patches)
+        .fold(0.0f64, |m, (a, b)| m.max((*a as f64 - b).abs()));
+    assert_eq!(host.len(), 2 * cfg.num_patches() * d);
+    eprintln!("host pass: max abs difference {host_err:.3e}");
+    assert!(
+        host_err / scale <= 1e-4,
+        "host pass: relative error {:.3e}",
+        host_err / scale
+    );
     let pos_dev = reference["pos_dev"].as_f64().unwrap();
     assert!(
         pos_dev < 1e-5,
