@@ -167,10 +167,15 @@ fn resume_renders_again_what_verify_flags() {
     assert!(std::fs::read(&field).unwrap() == field_bytes);
     assert!(std::fs::read(ds.join("manifest.json")).unwrap() == manifest);
 
-    // nothing flagged: nothing rendered
+    // nothing flagged: nothing rendered, and it says so
     let out = generate(&scene, &ds, &["--resume"]);
     assert!(out.status.success(), "{}", stderr(&out));
-    assert!(!stderr(&out).contains("frames in"), "{}", stderr(&out));
+    let said = stderr(&out);
+    assert!(!said.contains("frames in"), "{said}");
+    assert!(
+        said.contains("every sequence is written and checks out; nothing to render"),
+        "{said}"
+    );
 }
 
 /// Runs `sparsh` with stderr a pipe (not a terminal).

@@ -353,7 +353,17 @@ pub fn generate(scene_path: &Path, out: &Path, options: GenerateOptions) -> Resu
     progress.finish();
     let wall_s = start.elapsed().as_secs_f64();
     let stages = *totals.lock().expect("no poisoned lock");
-    if frames > 0 {
+    if frames == 0 {
+        eprintln!(
+            "{}: every sequence{} is written and checks out; nothing to render",
+            out.display(),
+            if options.shard.is_some() {
+                " of this shard"
+            } else {
+                ""
+            }
+        );
+    } else {
         let [gap, contact, optics, writing] = stages.ms_per_frame(frames);
         eprintln!(
             "{frames} frames in {wall_s:.2} s: {:.1} frames/s (per frame: gap {gap:.1} ms, contact {contact:.1} ms, optics {optics:.1} ms, writing {writing:.1} ms; the stages overlap)",

@@ -31,11 +31,31 @@ pub struct Progress {
 #[derive(Debug)]
 struct Lines {
     interval: Duration,
-    start: Instant,
-    /// Units done when counting started (a resumed run starts part-way).
-    start_done: Option<u64>,
+    rate: Rate,
     last: Instant,
     message: String,
+}
+
+/// Units per second since the first report: the time before it (loading data, building a
+/// model, pretraining's step-0 probe) and the units done before it (a resumed run starts
+/// part-way) are not counted, so the first figures are not skewed by a slow start.
+#[derive(Debug, Default)]
+struct Rate {
+    /// When the first report came, and the units done then.
+    first: Option<(Instant, u64)>,
+}
+
+impl Rate {
+    /// The rate at `now` with `done` units done; 0 (unknown) at the first report.
+    fn at(&mut self, now: Instant, done: u64) -> f64 {
+        let (t0, done0) = *self.first.get_or_insert((now, done));
+        let elapsed = now.duration_since(t0).as_secs_f64();
+        if elapsed > 0.0 {
+            done.saturating_sub(done0) as f64 / elapsed
+        } else {
+            0.0
+        }
+    }
 }
 
 impl Progress {
@@ -55,8 +75,7 @@ impl Progress {
         let lines = (!quiet && !terminal).then(|| {
             Mutex::new(Lines {
                 interval: Duration::from_millis(INTERVAL_MS.load(Ordering::Relaxed)),
-                start: now,
-                start_done: None,
+                rate: Rate::default(),
                 last: now,
                 message: String::new(),
             })
@@ -110,13 +129,11 @@ impl Progress {
         let Some(lines) = &self.lines else { return };
         let mut lines = lines.lock().expect("no poisoned lock");
         let now = Instant::now();
-        let start_done = *lines.start_done.get_or_insert(done.saturating_sub(1));
+        let rate = lines.rate.at(now, done);
         if now.duration_since(lines.last) < lines.interval {
             return;
         }
         lines.last = now;
-        let elapsed = now.duration_since(lines.start).as_secs_f64();
-        let rate = done.saturating_sub(start_done) as f64 / elapsed.max(1e-9);
         let line = progress_line(
             self.label,
             self.unit,
@@ -196,5 +213,20 @@ mod tests {
             "probe: 6/6 fits (100 %), 2.0 fits/s, done"
         );
         assert_eq!(duration_text(7322.0), "2 h 02 min");
+        assert_eq!(
+            progress_line("pretrain", "step", 1, 200, 0.0, ""),
+            "pretrain: 1/200 steps (0 %), – steps/s, ETA –"
+        );
+    }
+
+    /// The rate counts from the first report: a slow start (a resumed run's earlier steps, or
+    /// a minute of setup before the first step) does not enter it.
+    #[test]
+    fn rate_counts_from_the_first_report() {
+        let mut rate = Rate::default();
+        let t0 = Instant::now();
+        assert_eq!(rate.at(t0 + Duration::from_secs(60), 100), 0.0);
+        let r = rate.at(t0 + Duration::from_secs(64), 102);
+        assert!((r - 0.5).abs() < 1e-12, "{r}");
     }
 }
