@@ -699,6 +699,9 @@ fn device_without_an_adapter_fails_or_falls_back_on_one_line() {
     let out = render_on(&scene, &tmp.path().join("gpu.png"), "gpu", Some("dx12"));
     assert_user_error(&out, "no GPU adapter");
     assert!(!tmp.path().join("gpu.png").exists());
+    // `wgpu`, the learning commands' name for the same device, is taken too
+    let out = render_on(&scene, &tmp.path().join("gpu.png"), "wgpu", Some("dx12"));
+    assert_user_error(&out, "no GPU adapter");
     let out = render_on(&scene, &auto, "auto", Some("dx12"));
     assert!(out.status.success(), "{}", stderr(&out));
     // one line on the fallback, then render's line on what it wrote

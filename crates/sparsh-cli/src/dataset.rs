@@ -65,7 +65,9 @@ impl FromStr for Shard {
 pub enum DeviceArg {
     /// The CPU.
     Cpu,
-    /// A GPU adapter (wgpu); an error if there is none.
+    /// A GPU adapter (wgpu; `wgpu`, the learning commands' name, is taken too); an error if
+    /// there is none.
+    #[value(alias = "wgpu")]
     Gpu,
     /// A GPU adapter if there is one, else the CPU.
     Auto,
