@@ -7,17 +7,18 @@
 //! micro-kernel, 13 % operand packing, 12 % the pool's workers waking and waiting). Here the
 //! weights are copied out of the [`Vit`] once, in `[in, out]` row-major order, which the `gemm`
 //! crate reads as it is when the product is taken transposed (`Yᵀ = Wᵀ Xᵀ`: column-major `Wᵀ`,
-//! fewer than 8 micro-tiles of tokens per call), with the layer scale folded into the
+//! at most 8 micro-tiles of tokens per call), with the layer scale folded into the
 //! projections it scales (`γ ⊙ (x W + b) = x (W diag γ) + γ ⊙ b`). Each block is then two
 //! parallel regions over chunks of token rows, every product in a chunk single-threaded:
 //! 1. layer norm and the `qkv` projection of the chunk's tokens;
 //! 2. attention of the chunk's queries over every key, the output projection and residual, layer
 //!    norm, the GELU MLP and its residual.
 //!
-//! Layer norm, GELU and `exp` are [`crate::kernels`]' (the training path's), so the two paths
-//! differ only in the order of float sums: the features agree with [`Vit::forward`] to float
-//! rounding (tested), and a token's features do not depend on how the rows are chunked, so
-//! neither on the thread count (tested bit for bit).
+//! Layer norm and GELU are [`crate::kernels`]' (the training path's), the softmax's `exp` is
+//! theirs too (burn's attention uses the standard library's, with a running maximum), and the
+//! folded layer scale and the bias added after the product round differently: the features agree
+//! with [`Vit::forward`] to float rounding (tested), and a token's features do not depend on how
+//! the rows are chunked, so neither on the thread count (tested bit for bit, see [`chunk_rows`]).
 
 use burn::nn::{LayerNorm, Linear};
 use burn::prelude::*;
@@ -27,12 +28,30 @@ use crate::embed::Pool;
 use crate::kernels::{gelu_in_place, layer_norm_rows, softmax_in_place};
 use crate::vit::{Block, LN_EPS, Vit};
 
-/// Token rows in one product at most. The GEMM reads the weights where they are when a product
-/// has at most 8 micro-tiles of columns (48 tokens with AVX-512, `gemm-common`'s packing
-/// threshold) and packs them otherwise; and with at most 64 rows, every product's sum over `k`
-/// is cut into the same blocks however many rows a chunk has, so a token's features do not
-/// depend on the chunking.
+/// Token rows in one product, about at most. The GEMM reads the weights where they are when a
+/// product has at most 8 micro-tiles of 6 token columns (`gemm-common`'s packing threshold, f32
+/// with AVX2 or AVX-512) and packs them again at every call otherwise.
 const MAX_ROWS: usize = 48;
+
+/// Rows a chunk of `n` token rows for `tasks` parallel tasks: about [`MAX_ROWS`] at most, as
+/// many chunks as a multiple of the tasks where that divides evenly enough, and never a chunk of
+/// one row (unless `n` is 1).
+///
+/// What keeps a token's features independent of the chunking: (1) no product of one row (the
+/// GEMM takes a matrix-vector kernel there, its sums in another order); (2) no product whose
+/// operands are both contiguous along the summed axis (the GEMM's dot-product kernels for small
+/// products; hence the transposed queries); (3) at most 64 rows a chunk, so that every product's
+/// sum is cut into the same blocks (the GEMM chooses them from the sizes when both are at most
+/// 64). The rest (packing, tiling) does not change a sum.
+fn chunk_rows(n: usize, tasks: usize) -> usize {
+    let tasks = tasks.max(1);
+    let mut rows = n.div_ceil(tasks * n.div_ceil(tasks * MAX_ROWS)).max(2);
+    while n > 1 && n % rows == 1 {
+        rows += 1;
+    }
+    debug_assert!(rows <= 64, "{rows} rows a chunk");
+    rows
+}
 
 /// The values of a tensor on the host, row-major.
 fn host<const D: usize>(t: Tensor<D>) -> Vec<f32> {
@@ -259,13 +278,14 @@ impl HostVit {
     /// Features of `samples` clips `[frames, channels, height, width]` concatenated in `inputs`
     /// (the input of [`Vit::forward`]), concatenated in the same order: `[dim]` per sample
     /// pooled, else `[tokens, dim]`. Fewer samples than threads split each sample's tokens over
-    /// the pool; more run one sample per task.
+    /// the pool; at least as many run one sample per task.
     ///
     /// # Panics
     /// When `inputs` is not a whole number of samples of `sample_shape`, or that shape is not the
     /// encoder's input.
     pub fn embed(&self, inputs: &[f32], sample_shape: [usize; 4], pool: Pool) -> Vec<f32> {
         let len: usize = sample_shape.iter().product();
+        assert!(len > 0, "empty sample shape {sample_shape:?}");
         let samples = inputs.len() / len;
         assert_eq!(samples * len, inputs.len(), "whole samples");
         let threads = rayon::current_num_threads();
@@ -299,19 +319,14 @@ impl HostVit {
         let (dim, r, tokens) = (self.dim(), self.registers.len() / self.dim(), self.tokens());
         let [gt, gh, gw] = self.grid;
         let (p, tube) = (self.patch_size, self.tubelet_size);
+        let pd = self.patch_dim();
         assert_eq!(
-            [frames, height, width],
-            [gt * tube, gh * p, gw * p],
+            [frames, height, width, channels * tube * p * p],
+            [gt * tube, gh * p, gw * p, pd],
             "input shape"
         );
         let n = r + tokens;
-        // Rows a chunk: at most about MAX_ROWS, the chunks a multiple of the tasks; never a chunk
-        // of one row (a one-row product takes a matrix-vector kernel, its sums in another order).
-        let tasks = tasks.max(1);
-        let mut rows = n.div_ceil(tasks * n.div_ceil(tasks * MAX_ROWS)).max(2);
-        while n % rows == 1 {
-            rows += 1;
-        }
+        let rows = chunk_rows(n, tasks);
         let hidden = self.blocks.first().map_or(0, |b| b.fc1.outputs());
         let mut scratch: Vec<Scratch> = (0..n.div_ceil(rows))
             .map(|_| Scratch {
@@ -319,44 +334,38 @@ impl HostVit {
                 attended: vec![0.0; rows * dim],
                 weights: vec![0.0; rows * n],
                 queries: vec![0.0; rows * dim],
-                hidden: vec![0.0; rows * hidden.max(self.patch_dim())],
+                hidden: vec![0.0; rows * hidden],
                 stats: vec![0.0; rows * 2],
                 ones: vec![1.0; dim],
             })
             .collect();
 
-        // patch embedding: flattened patches (channel, frame, row, column) → tokens + positions
-        let mut x = vec![0.0f32; n * dim];
-        x[..r * dim].copy_from_slice(&self.registers);
-        let pd = self.patch_dim();
-        x.par_chunks_mut(rows * dim)
-            .zip(scratch.par_iter_mut())
-            .enumerate()
-            .for_each(|(c, (xs, s))| {
-                // the chunk's rows first..; those below r are registers, already in place
-                let first = c * rows;
-                let skip = r.saturating_sub(first).min(xs.len() / dim);
-                let (t0, count) = (first + skip - r, xs.len() / dim - skip);
-                let patches = &mut s.hidden[..count * pd];
-                for (t, dst) in (t0..t0 + count).zip(patches.chunks_mut(pd)) {
-                    let (ft, y, xg) = (t / (gh * gw), t / gw % gh, t % gw);
-                    let mut k = 0;
-                    for ch in 0..channels {
-                        for f in ft * tube..(ft + 1) * tube {
-                            for py in 0..p {
-                                let at =
-                                    ((f * channels + ch) * height + y * p + py) * width + xg * p;
-                                dst[k..k + p].copy_from_slice(&input[at..at + p]);
-                                k += p;
-                            }
-                        }
+        // patch embedding: flattened patches (channel, frame, row, column) → tokens + positions,
+        // in chunks of the patch tokens' own (registers would leave a chunk of one token)
+        let mut patches = vec![0.0f32; tokens * pd];
+        patches.par_chunks_mut(pd).enumerate().for_each(|(t, dst)| {
+            let (ft, y, xg) = (t / (gh * gw), t / gw % gh, t % gw);
+            let mut k = 0;
+            for ch in 0..channels {
+                for f in ft * tube..(ft + 1) * tube {
+                    for py in 0..p {
+                        let at = ((f * channels + ch) * height + y * p + py) * width + xg * p;
+                        dst[k..k + p].copy_from_slice(&input[at..at + p]);
+                        k += p;
                     }
                 }
-                let ys = &mut xs[skip * dim..];
+            }
+        });
+        let mut x = vec![0.0f32; n * dim];
+        x[..r * dim].copy_from_slice(&self.registers);
+        let token_rows = chunk_rows(tokens, tasks);
+        x[r * dim..]
+            .par_chunks_mut(token_rows * dim)
+            .zip(patches.par_chunks(token_rows * pd))
+            .zip(self.pos_embed.par_chunks(token_rows * dim))
+            .for_each(|((ys, patches), pos)| {
                 self.patch_embed.forward(patches, ys);
-                ys.iter_mut()
-                    .zip(&self.pos_embed[t0 * dim..])
-                    .for_each(|(y, e)| *y += e);
+                ys.iter_mut().zip(pos).for_each(|(y, e)| *y += e);
             });
 
         let mut qkv = vec![0.0f32; n * 3 * dim];
@@ -526,18 +535,20 @@ mod tests {
     }
 
     /// The host pass against burn's graph ([`Vit::forward`] through [`encode`]) for an image
-    /// encoder with registers and layer scale and a V-JEPA clip encoder (tubelets of 2 frames),
-    /// pooled and not, at batch 1 and 3; and bit for bit the same on pools of 1, 2 and 3 threads.
+    /// encoder with registers and layer scale, a V-JEPA clip encoder (tubelets of 2 frames) and
+    /// an encoder of one token, pooled and not, at batch 1 and 3; and bit for bit the same on
+    /// pools of 1, 2, 3, 16 and 40 threads (chunks of 2 to 49 rows, the registers filling whole
+    /// chunks on the largest pools).
     #[test]
     fn host_features_match_burns_graph_and_not_the_thread_count() {
-        // 96 tokens and a register: chunks of 25 to 33 rows; a hidden layer of 576 (a sum over
-        // k = 576 in the second MLP layer, longer than one of the GEMM's blocks)
+        // 96 tokens and 4 registers; a hidden layer of 576 (a sum over k = 576 in the second MLP
+        // layer, longer than one of the GEMM's blocks)
         let image = VitConfig::new([48, 32], 4)
             .with_mlp_ratio(12.0)
             .with_embed_dim(48)
             .with_depth(2)
             .with_num_heads(3)
-            .with_num_registers(1)
+            .with_num_registers(4)
             .with_layer_scale(Some(1.0));
         let clip = VitConfig::new([16, 12], 4)
             .with_in_chans(3)
@@ -546,7 +557,11 @@ mod tests {
             .with_embed_dim(32)
             .with_depth(2)
             .with_num_heads(4);
-        for cfg in [image, clip] {
+        let one_token = VitConfig::new([4, 4], 4)
+            .with_embed_dim(16)
+            .with_depth(1)
+            .with_num_heads(2);
+        for cfg in [image, clip, one_token] {
             let vit = encoder(&cfg);
             let frozen = HostVit::new(&vit);
             let shape = [
@@ -576,7 +591,7 @@ mod tests {
                         diff <= 2e-5 * scale,
                         "{p:?}, batch {batch}: off by {diff:e} (scale {scale})"
                     );
-                    for threads in [2, 3] {
+                    for threads in [2, 3, 16, 40] {
                         let again = pool(threads).install(|| frozen.embed(&inputs, shape, p));
                         assert!(
                             again
