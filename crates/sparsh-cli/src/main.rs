@@ -470,6 +470,7 @@ enum FieldprobeAction {
 }
 
 fn main() -> ExitCode {
+    quiet_device_select_without_a_session();
     let cli = Cli::parse();
     match run(cli) {
         Ok(()) => ExitCode::SUCCESS,
@@ -477,6 +478,21 @@ fn main() -> ExitCode {
             eprintln!("error: {}", one_line(&err));
             ExitCode::FAILURE
         }
+    }
+}
+
+/// Outside a desktop session (no `XDG_RUNTIME_DIR`: ssh, CI, containers) Mesa's Vulkan
+/// device-select layer asks the Wayland library for the session's default GPU whenever wgpu
+/// lists adapters, and that library prints `error: XDG_RUNTIME_DIR is invalid or not set in the
+/// environment.` on stderr, several times, though nothing failed. The layer only reorders
+/// adapters (wgpu chooses its own), so there it is switched off (`NODEVICE_SELECT=1`, Mesa's
+/// switch) unless the user set that variable.
+fn quiet_device_select_without_a_session() {
+    if std::env::var_os("XDG_RUNTIME_DIR").is_none()
+        && std::env::var_os("NODEVICE_SELECT").is_none()
+    {
+        // SAFETY: the first thing `main` does, before any other thread exists.
+        unsafe { std::env::set_var("NODEVICE_SELECT", "1") };
     }
 }
 
