@@ -14,9 +14,9 @@
 //! 2. attention of the chunk's queries over every key, the output projection and residual, layer
 //!    norm, the GELU MLP and its residual.
 //!
-//! Layer norm and GELU are [`crate::kernels`]' (the training path's), the softmax's `exp` is
-//! theirs too (burn's attention uses the standard library's, with a running maximum), and the
-//! folded layer scale and the bias added after the product round differently: the features agree
+//! Layer norm, GELU and the softmax's `exp` are [`crate::kernels`]' (layer norm and GELU as in
+//! training; burn's attention takes the standard library's `exp`, with a running maximum), and
+//! the folded layer scale and the bias added after the product round differently: the features agree
 //! with [`Vit::forward`] to float rounding (tested), and a token's features do not depend on how
 //! the rows are chunked, so neither on the thread count (tested bit for bit, see [`chunk_rows`]).
 
@@ -40,9 +40,10 @@ const MAX_ROWS: usize = 48;
 /// What keeps a token's features independent of the chunking: (1) no product of one row (the
 /// GEMM takes a matrix-vector kernel there, its sums in another order); (2) no product whose
 /// operands are both contiguous along the summed axis (the GEMM's dot-product kernels for small
-/// products; hence the transposed queries); (3) at most 64 rows a chunk, so that every product's
-/// sum is cut into the same blocks (the GEMM chooses them from the sizes when both are at most
-/// 64). The rest (packing, tiling) does not change a sum.
+/// products; hence the transposed queries); (3) at most 64 rows a chunk: the GEMM cuts a long
+/// sum into blocks of one length when both sides of its output are at most 64 and of another
+/// otherwise, so a chunk of more rows could move a cut. The rest (packing, tiling) does not
+/// change a sum.
 fn chunk_rows(n: usize, tasks: usize) -> usize {
     let tasks = tasks.max(1);
     let mut rows = n.div_ceil(tasks * n.div_ceil(tasks * MAX_ROWS)).max(2);
