@@ -18,7 +18,7 @@
 //! training; burn's attention takes the standard library's `exp`, with a running maximum), and
 //! the folded layer scale and the bias added after the product round differently: the features agree
 //! with [`Vit::forward`] to float rounding (tested), and a token's features do not depend on how
-//! the rows are chunked, so neither on the thread count (tested bit for bit, see [`chunk_rows`]).
+//! the rows are chunked, so neither on the thread count (tested bit for bit; see `chunk_rows`).
 
 use burn::nn::{LayerNorm, Linear};
 use burn::prelude::*;
