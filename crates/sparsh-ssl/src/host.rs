@@ -201,6 +201,67 @@ impl Block32 {
             heads: block.attn.num_heads,
         }
     }
+
+    /// Step (2) of a block for the rows `first..` of `x` (`xs`), from every token's `qkv`.
+    fn rest(&self, qkv: &[f32], first: usize, xs: &mut [f32], s: &mut Scratch, n: usize) {
+        let dim = self.norm1[0].len();
+        let rows = xs.len() / dim;
+        let dh = dim / self.heads;
+        let scale = 1.0 / (dh as f32).sqrt();
+        let attended = &mut s.attended[..rows * dim];
+        let weights = &mut s.weights[..rows * n];
+        let queries = &mut s.queries[..rows * dh];
+        for h in 0..self.heads {
+            // the chunk's queries of head h transposed, `[dh, rows]`: with both operands
+            // contiguous along d, a small product would take the GEMM's dot-product kernels,
+            // whose sums run in another order than the chunk of another size would get
+            for (q, row) in qkv[first * 3 * dim..]
+                .chunks(3 * dim)
+                .take(rows)
+                .enumerate()
+            {
+                for (d, &v) in row[h * dh..(h + 1) * dh].iter().enumerate() {
+                    queries[d * rows + q] = v;
+                }
+            }
+            let k = &qkv[dim + h * dh..];
+            let v = &qkv[2 * dim + h * dh..];
+            assert!(v.len() >= (n - 1) * 3 * dim + dh);
+            // SAFETY: queries is rows × dh (column-major), kᵀ dh × n and v n × dh at row stride
+            // 3·dim, all in `qkv` by the assertion (k starts before v); weights is rows × n;
+            // attended rows × dim.
+            unsafe {
+                // scores = q kᵀ / √d_head
+                product(
+                    [rows, n, dh],
+                    (weights.as_mut_ptr(), [n, 1]),
+                    (queries.as_ptr(), [1, rows]),
+                    (k.as_ptr(), [1, 3 * dim]),
+                    scale,
+                    false,
+                );
+            }
+            weights.chunks_mut(n).for_each(softmax_in_place);
+            // SAFETY: as above.
+            unsafe {
+                product(
+                    [rows, dh, n],
+                    (attended.as_mut_ptr().add(h * dh), [dim, 1]),
+                    (weights.as_ptr(), [n, 1]),
+                    (v.as_ptr(), [3 * dim, 1]),
+                    1.0,
+                    false,
+                );
+            }
+        }
+        self.proj.add_forward(attended, xs);
+        let normed = &mut s.normed[..rows * dim];
+        norm_rows(xs, &self.norm2, normed, &mut s.stats, &s.ones);
+        let hidden = &mut s.hidden[..rows * self.fc1.outputs()];
+        self.fc1.forward(normed, hidden);
+        gelu_in_place(hidden);
+        self.fc2.add_forward(hidden, xs);
+    }
 }
 
 /// A [`Vit`]'s weights on the host, laid out for [`HostVit::embed`].
@@ -428,69 +489,6 @@ fn norm_rows(
         [gamma, beta, ones],
         LN_EPS as f32,
     );
-}
-
-impl Block32 {
-    /// Step (2) of a block for the rows `first..` of `x` (`xs`), from every token's `qkv`.
-    fn rest(&self, qkv: &[f32], first: usize, xs: &mut [f32], s: &mut Scratch, n: usize) {
-        let dim = self.norm1[0].len();
-        let rows = xs.len() / dim;
-        let dh = dim / self.heads;
-        let scale = 1.0 / (dh as f32).sqrt();
-        let attended = &mut s.attended[..rows * dim];
-        let weights = &mut s.weights[..rows * n];
-        let queries = &mut s.queries[..rows * dh];
-        for h in 0..self.heads {
-            // the chunk's queries of head h transposed, `[dh, rows]`: with both operands
-            // contiguous along d, a small product would take the GEMM's dot-product kernels,
-            // whose sums run in another order than the chunk of another size would get
-            for (q, row) in qkv[first * 3 * dim..]
-                .chunks(3 * dim)
-                .take(rows)
-                .enumerate()
-            {
-                for (d, &v) in row[h * dh..(h + 1) * dh].iter().enumerate() {
-                    queries[d * rows + q] = v;
-                }
-            }
-            let k = &qkv[dim + h * dh..];
-            let v = &qkv[2 * dim + h * dh..];
-            assert!(v.len() >= (n - 1) * 3 * dim + dh);
-            // SAFETY: queries is rows × dh (column-major), kᵀ dh × n and v n × dh at row stride
-            // 3·dim, all in `qkv` by the assertion (k starts before v); weights is rows × n;
-            // attended rows × dim.
-            unsafe {
-                // scores = q kᵀ / √d_head
-                product(
-                    [rows, n, dh],
-                    (weights.as_mut_ptr(), [n, 1]),
-                    (queries.as_ptr(), [1, rows]),
-                    (k.as_ptr(), [1, 3 * dim]),
-                    scale,
-                    false,
-                );
-            }
-            weights.chunks_mut(n).for_each(softmax_in_place);
-            // SAFETY: as above.
-            unsafe {
-                product(
-                    [rows, dh, n],
-                    (attended.as_mut_ptr().add(h * dh), [dim, 1]),
-                    (weights.as_ptr(), [n, 1]),
-                    (v.as_ptr(), [3 * dim, 1]),
-                    1.0,
-                    false,
-                );
-            }
-        }
-        self.proj.add_forward(attended, xs);
-        let normed = &mut s.normed[..rows * dim];
-        norm_rows(xs, &self.norm2, normed, &mut s.stats, &s.ones);
-        let hidden = &mut s.hidden[..rows * self.fc1.outputs()];
-        self.fc1.forward(normed, hidden);
-        gelu_in_place(hidden);
-        self.fc2.add_forward(hidden, xs);
-    }
 }
 
 #[cfg(test)]

@@ -309,9 +309,7 @@ pub(crate) fn softmax_in_place(x: &mut [f32]) {
             acc[k] += c[k];
         }
     }
-    let sum =
-        ((acc[0] + acc[4]) + (acc[1] + acc[5])) + ((acc[2] + acc[6]) + (acc[3] + acc[7])) + tail;
-    let inv = 1.0 / sum;
+    let inv = 1.0 / (lanes_sum(acc) + tail);
     x.iter_mut().for_each(|v| *v *= inv);
 }
 
@@ -355,7 +353,13 @@ fn dot(a: &[f32], b: &[f32]) -> f32 {
             acc[k] += x[k] * y[k];
         }
     }
-    ((acc[0] + acc[4]) + (acc[1] + acc[5])) + ((acc[2] + acc[6]) + (acc[3] + acc[7])) + tail
+    lanes_sum(acc) + tail
+}
+
+/// The eight partial sums of one vector register added in a fixed order.
+#[inline(always)]
+fn lanes_sum(acc: [f32; 8]) -> f32 {
+    ((acc[0] + acc[4]) + (acc[1] + acc[5])) + ((acc[2] + acc[6]) + (acc[3] + acc[7]))
 }
 
 /// Layer norm of the dense f32 `x` over its last axis: the output and the rows' `[mean,
