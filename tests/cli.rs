@@ -505,6 +505,20 @@ fn bad_generate_options_fail_with_one_line() {
     assert_user_error(&generate(&scene, &blocked.join("ds"), &[]), "file-not-dir");
 }
 
+/// Whether python3 can import the given modules; without them the test skips, unless
+/// `SPARSH_REQUIRE_PYTHON` is set (CI), where it fails.
+fn python_with(modules: &str) -> bool {
+    let ok = std::process::Command::new("python3")
+        .args(["-c", &format!("import {modules}")])
+        .output()
+        .is_ok_and(|o| o.status.success());
+    assert!(
+        ok || std::env::var_os("SPARSH_REQUIRE_PYTHON").is_none(),
+        "SPARSH_REQUIRE_PYTHON is set but python3 cannot import {modules}"
+    );
+    ok
+}
+
 #[test]
 fn export_writes_the_official_sparsh_layout() {
     let tmp = tempfile::tempdir().unwrap();
@@ -525,7 +539,7 @@ fn export_writes_the_official_sparsh_layout() {
     let said = stderr(&out);
     assert_eq!(said.trim_end().lines().count(), 1, "{said}");
     assert!(
-        said.contains("pkl: ") && said.contains(" sequences in the sparsh-pkl layout"),
+        said.contains("pkl: 16 sequences (digit, gelsight_mini) in the official Sparsh layouts"),
         "{said}"
     );
     let labels = std::fs::read_to_string(ds.join("labels.jsonl")).unwrap();
@@ -533,31 +547,149 @@ fn export_writes_the_official_sparsh_layout() {
         .lines()
         .map(|l| serde_json::from_str(l).unwrap())
         .collect();
-    for sequence in [0usize, 12] {
-        let seq_rows: Vec<&serde_json::Value> =
-            rows.iter().filter(|r| r["sequence"] == sequence).collect();
-        let frames = sparsh_data::sparsh_pkl::read_frames_pickle(
-            &out_dir.join(format!("frames/{sequence:06}/dataset_0.pkl")),
-        )
-        .unwrap();
-        assert_eq!(frames.len(), seq_rows.len());
-        let labels = sparsh_data::sparsh_pkl::read_slip_forces(
-            &out_dir.join(format!("labels/{sequence:06}/dataset_slip_forces.pkl")),
-        )
-        .unwrap();
-        for (k, row) in seq_rows.iter().enumerate() {
-            assert_eq!(labels.forces[k][2], row["force_n"][2].as_f64().unwrap());
-            assert_eq!(
-                labels.slip_label[k] == 1,
-                row["slip_cone"].as_bool().unwrap()
-            );
+    let row = |sequence: usize, k: usize| {
+        rows.iter()
+            .find(|r| r["sequence"] == sequence && r["frame_in_sequence"] == k)
+            .unwrap()
+    };
+    let force = |r: &serde_json::Value| -> [f64; 3] {
+        std::array::from_fn(|c| r["force_n"][c].as_f64().unwrap())
+    };
+
+    // Our reader of the official datasets, on each batch: every frame, its force and split.
+    let first_of = |family: &str, split: &str| {
+        rows.iter()
+            .find(|r| r["family"] == family && r["split"] == split)
+            .map(|r| r["sequence"].as_u64().unwrap() as usize)
+            .unwrap()
+    };
+    let (spheres, cones) = (first_of("spheres", "train"), first_of("cones", "train"));
+    for (sequence, sensor, length) in [(spheres, "digit", 16), (cones, "gelsight_mini", 12)] {
+        let family = if sequence == spheres {
+            "spheres"
+        } else {
+            "cones"
+        };
+        let batch = format!("force_slip/{sensor}/train/{family}/batch_{sequence:06}");
+        let data = sparsh_bench::official::load(&out_dir.join(batch), [32, 24]).unwrap();
+        assert_eq!(data.labels.len(), 1);
+        let frames = &data.labels[0].frames;
+        assert_eq!(frames.len(), length);
+        for (k, f) in frames.iter().enumerate() {
+            assert_eq!(f.force_n, Some(force(row(sequence, k))));
+            assert_eq!(f.slip_cone, row(sequence, k)["slip_cone"].as_bool());
         }
+        assert_eq!(data.labels[0].test, Some(false));
+    }
+    let test_batches: Vec<usize> = rows
+        .iter()
+        .filter(|r| r["split"] == "test" && r["frame_in_sequence"] == 0)
+        .map(|r| r["sequence"].as_u64().unwrap() as usize)
+        .collect();
+    assert!(!test_batches.is_empty());
+    let dir = out_dir.join(format!(
+        "force_slip/digit/test/spheres/batch_{:06}",
+        test_batches[0]
+    ));
+    assert_eq!(
+        sparsh_bench::official::load(&dir, [32, 24]).unwrap().labels[0].test,
+        Some(true)
+    );
+
+    // The official loaders, transcribed (tests/official_loaders.py).
+    if python_with("numpy, PIL, yaml") {
+        let (report, image) = (tmp.path().join("report.json"), tmp.path().join("input.f32"));
+        let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tests/official_loaders.py");
+        let run = std::process::Command::new("python3")
+            .arg(&script)
+            .args([&out_dir, &report, &image])
+            .output()
+            .unwrap();
         assert!(
-            out_dir
-                .join(format!("frames/{sequence:06}/bg_0.jpg"))
-                .is_file()
+            run.status.success(),
+            "{}",
+            String::from_utf8_lossy(&run.stderr)
+        );
+        let report: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+        let items = report["force"].as_array().unwrap();
+        // every sequence, less the 5 trailing samples the official index map leaves out
+        assert_eq!(items.len(), 10 * (16 - 5) + 6 * (12 - 5));
+        for item in items {
+            let batch = item["batch"].as_str().unwrap();
+            let sequence: usize = batch.rsplit("batch_").next().unwrap().parse().unwrap();
+            let sample = item["sample"].as_u64().unwrap() as usize;
+            let r = row(sequence, sample);
+            assert_eq!(item["split"], r["split"], "{batch}");
+            let got: [f64; 3] = std::array::from_fn(|c| item["force_n"][c].as_f64().unwrap());
+            assert_eq!(got, force(r), "{batch} sample {sample}");
+            assert_eq!(item["slip_label"] == 1, r["slip_cone"].as_bool().unwrap());
+            // the official delta: force now minus 5 samples before (clipped), over its scale
+            let scale = [0.25, 0.25, 0.15];
+            for c in 0..3 {
+                let want = (r["delta_force_n"][c].as_f64().unwrap() / scale[c]).clamp(-1.0, 1.0);
+                let delta = item["delta_force"][c].as_f64().unwrap();
+                assert!(
+                    (delta - want).abs() < 1e-9,
+                    "{batch} {sample}: {delta} vs {want}"
+                );
+            }
+        }
+        let ssl = &report["ssl"];
+        assert_eq!(
+            ssl["train"].as_object().unwrap().len() + ssl["val"].as_object().unwrap().len(),
+            16
+        );
+        assert_eq!(ssl["train"][format!("spheres_{spheres:06}/dataset_0")], 16);
+        assert_eq!(ssl["train"][format!("cones_{cones:06}/dataset_0")], 12);
+        assert_eq!(
+            ssl["val"][format!("spheres_{:06}/dataset_0", test_batches[0])],
+            16
+        );
+        assert_eq!(
+            ssl["input_shapes"],
+            serde_json::json!(["(120, 90, 3)", "(160, 120, 3)"])
+        );
+
+        // The official input of the most pressed sample is our preprocessing of the same PNG
+        // (up to the JPEG of the export), not its 180° turn.
+        let strongest = &report["strongest"];
+        let batch = strongest["batch"].as_str().unwrap();
+        let sequence: usize = batch.rsplit("batch_").next().unwrap().parse().unwrap();
+        let sample = strongest["sample"].as_u64().unwrap() as usize;
+        let r = row(sequence, sample);
+        let png = |rel: &str| image::open(ds.join(rel)).unwrap().to_rgb8();
+        let frame = png(&format!("frames/{:06}.png", r["frame"].as_u64().unwrap()));
+        let bg = png(r["background"].as_str().unwrap());
+        let size = [frame.width() as usize, frame.height() as usize];
+        let ours = sparsh_ssl::data::preprocess(&frame, &bg, size).unwrap();
+        let bytes = std::fs::read(&image).unwrap();
+        let official: Vec<f32> = bytes
+            .chunks_exact(4)
+            .map(|b| f32::from_le_bytes(b.try_into().unwrap()))
+            .take(ours.len())
+            .collect();
+        let mean_abs = |a: &[f32], b: &mut dyn Iterator<Item = f32>| {
+            a.iter()
+                .zip(b)
+                .map(|(x, y)| (x - y).abs() as f64)
+                .sum::<f64>()
+                / a.len() as f64
+        };
+        let plane = size[0] * size[1];
+        let same = mean_abs(&ours, &mut official.iter().copied());
+        let turned = mean_abs(
+            &ours,
+            &mut (0..3).flat_map(|c| official[c * plane..(c + 1) * plane].iter().rev().copied()),
+        );
+        eprintln!("official input: mean |Δ| {same:.5} from ours, {turned:.5} from its 180° turn");
+        assert!(same < 0.005, "official input differs from ours by {same}");
+        assert!(
+            turned > 5.0 * same,
+            "a 180° turn is as close: {turned} vs {same}"
         );
     }
+
     let out = sparsh(&[
         "export",
         tmp.path().join("nowhere").to_str().unwrap(),

@@ -515,9 +515,11 @@ fn pickle_seeds(dir: &Path) -> [Vec<u8>; 2] {
     let labels = dir.join("labels.pkl");
     let forces = sparsh_data::sparsh_pkl::SlipForces {
         in_contact: vec![false, true],
-        indexes: vec![0, 1],
-        forces: vec![[0.0, 0.0, 0.0], [0.1, -0.2, 1.5]],
-        slip_label: vec![0, 1],
+        trajectories: vec![sparsh_data::sparsh_pkl::Trajectory {
+            indexes: vec![0, 1],
+            forces: vec![[0.0, 0.0, 0.0], [0.1, -0.2, 1.5]],
+            slip_label: vec![0, 1],
+        }],
     };
     sparsh_data::sparsh_pkl::write_slip_forces(&labels, &forces).unwrap();
     [
@@ -529,6 +531,8 @@ fn pickle_seeds(dir: &Path) -> [Vec<u8>; 2] {
 proptest! {
     #![proptest_config(config(1000))]
 
+    /// A mutated frame pickle read alone and as a force/slip batch's frames, or a mutated
+    /// `dataset_slip_forces.pkl` beside intact frames, read by the official-layout loader.
     #[test]
     fn pickles(which in 0..2usize, edits in byte_edits()) {
         let tmp = tempfile::tempdir().unwrap();
@@ -537,14 +541,20 @@ proptest! {
         for e in &edits {
             apply_bytes(&mut data, e, usize::MAX);
         }
-        let dir = tmp.path().join("mutated");
+        let dir = tmp.path().join("batch_0");
         std::fs::create_dir(&dir).unwrap();
-        let path = dir.join("data.pkl");
-        std::fs::write(&path, &data).unwrap();
-        let frames = sparsh_ssl::data::load_pickle(&path, [32, 24]).map_err(|e| e.to_string());
+        let (frames_file, labels_file) = if which == 0 {
+            (data.clone(), seeds[1].clone())
+        } else {
+            (seeds[0].clone(), data.clone())
+        };
+        std::fs::write(dir.join("dataset_digit_00.pkl"), &frames_file).unwrap();
+        std::fs::write(dir.join("dataset_slip_forces.pkl"), &labels_file).unwrap();
+        let frames = sparsh_ssl::data::load_pickle(&dir.join("dataset_digit_00.pkl"), [32, 24])
+            .map_err(|e| e.to_string());
         check_refusal(frames, &dir)?;
-        let labels = sparsh_data::sparsh_pkl::read_slip_forces(&path).map_err(|e| e.to_string());
-        check_refusal(labels, &dir)?;
+        let batch = sparsh_bench::official::load(&dir, [32, 24]).map_err(|e| e.to_string());
+        check_refusal(batch, &dir)?;
     }
 }
 
@@ -673,7 +683,7 @@ fn pickle_claiming_a_terabyte_string_is_refused_before_allocating() {
     let tmp = tempfile::tempdir().unwrap();
     let path = tmp.path().join("huge.pkl");
     std::fs::write(&path, &data).unwrap();
-    let err = sparsh_data::sparsh_pkl::read_slip_forces(&path)
+    let err = sparsh_data::sparsh_pkl::read_frames_pickle(&path)
         .unwrap_err()
         .to_string();
     assert_eq!(

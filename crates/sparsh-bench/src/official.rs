@@ -17,9 +17,10 @@
 //!   the first sample, as the official `_get_force_slip_labels`). The background of every frame
 //!   of a batch is its first frame with `in_contact == 0` (`remove_bg: true`). `class` is the
 //!   batch's `<indenter>/<batch>`; `test` is true for the official test batches `flat/batch_1`
-//!   (force) and `*/batch_test` (slip), false for the other batches. A `trajectories` that is
-//!   itself `{"indexes", "forces", "slip_label"}` (the layout `sparsh_data::sparsh_pkl` writes)
-//!   is read as one trajectory.
+//!   (force), `*/batch_test` (slip) and batches under a `test` directory (`sparsh export`'s
+//!   `test/<family>/batch_<seq>`), false for the other batches. A `trajectories` that is itself
+//!   `{"indexes", "forces", "slip_label"}` (what earlier `sparsh export` versions wrote) is read
+//!   as one trajectory.
 //! - **Pose (T3)** — `tactile_ssl/data/vision_based_pose_probes.py`,
 //!   `digit/utils.py::load_dataset_poses`, `config/data/digit_pose.yaml`. Each
 //!   `{train,test}/<object>/bag_NN.pkl` is one sequence: the ring finger's frames `digit_ring`
@@ -825,7 +826,7 @@ fn load_force_batch(
     } else {
         format!("{indenter}/{batch}")
     };
-    let test = force_test_batch(&indenter, &batch);
+    let test = force_test_batch(&indenter, &batch) || split_of(dir, 3) == Some(true);
 
     let mut out = Vec::with_capacity(trajectories.len());
     for (key, traj) in trajectories {
@@ -1453,7 +1454,7 @@ mod tests {
     }
 
     #[test]
-    fn force_flat_trajectories_of_sparsh_data_export() {
+    fn force_batch_as_sparsh_export_writes_it() {
         let tmp = tempfile::tempdir().unwrap();
         let dir = tmp.path().join("sim/batch_test");
         write_value(&dir.join("dataset_0.pkl"), &frames_list(&[7, 8, 9]));
@@ -1461,9 +1462,11 @@ mod tests {
             &dir.join(FORCE_LABELS),
             &sparsh_data::sparsh_pkl::SlipForces {
                 in_contact: vec![false, true, true],
-                indexes: vec![0, 1, 2],
-                forces: vec![[0.0; 3], [0.1, 0.0, 1.0], [2.0, 0.0, 1.0]],
-                slip_label: vec![0, 0, 1],
+                trajectories: vec![sparsh_data::sparsh_pkl::Trajectory {
+                    indexes: vec![0, 1, 2],
+                    forces: vec![[0.0; 3], [0.1, 0.0, 1.0], [2.0, 0.0, 1.0]],
+                    slip_label: vec![0, 0, 1],
+                }],
             },
         )
         .unwrap();

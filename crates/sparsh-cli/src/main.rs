@@ -171,8 +171,8 @@ enum Command {
     Export {
         /// Dataset directory written by `generate`.
         dir: PathBuf,
-        /// Target layout: `sparsh-pkl`, the official Sparsh code's pickles of JPEG frames and
-        /// force/slip labels.
+        /// Target layout: `sparsh-pkl`, what the official Sparsh code's loaders read: force/slip
+        /// batch folders, SSL pickles with their backgrounds, and Hydra data configs naming them.
         #[arg(long, value_parser = ["sparsh-pkl"])]
         format: String,
         /// Output directory.
@@ -655,10 +655,13 @@ fn run(cli: Cli) -> Result<()> {
             format: _,
             out,
         } => {
-            let sequences = sparsh_data::sparsh_pkl::export(&dir, &out)?;
+            let done = sparsh_data::sparsh_pkl::export(&dir, &out)?;
             eprintln!(
-                "{}: {sequences} sequences in the sparsh-pkl layout",
-                out.display()
+                "{}: {} sequences ({}) in the official Sparsh layouts; data configs \
+                 sparsh_ssl.yaml and sparsh_force_slip_<sensor>.yaml",
+                out.display(),
+                done.sequences,
+                done.sensors.join(", ")
             );
             Ok(())
         }

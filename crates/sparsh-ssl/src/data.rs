@@ -3,7 +3,8 @@
 //!
 //! Preprocessing follows the official code (`data/digit/utils.py`):
 //! 1. background subtraction `diff = clip((img − bg)/255 + 0.5, 0, 1)`, stored as 8-bit;
-//! 2. landscape frames rotated to portrait (counter-clockwise) and centre-cropped to 4:3;
+//! 2. landscape frames rotated to portrait clockwise (`cv2.ROTATE_90_CLOCKWISE`), and a frame
+//!    whose height is not 4/3 of its width cut to its centre `int(3h/4)` rows ([`official_crop`]);
 //! 3. resized (triangle filter) and scaled to `[0, 1]`; no mean/std normalization.
 //!
 //! Layouts read here:
@@ -125,6 +126,21 @@ pub struct Dataset {
     pub size: [usize; 2],
 }
 
+/// The official crop of a portrait frame `w × h` (`load_sample_from_buf` in
+/// `data/digit/utils.py`): where `h / w` is not 4/3, keep the width and the centre
+/// `int(h / (4/3))` rows, rows `int((h − h₂)/2) .. int((h + h₂)/2)` in Python's float arithmetic;
+/// else the whole frame. Returns `[left, top, width, height]`.
+pub fn official_crop(w: u32, h: u32) -> [u32; 4] {
+    let r = 4.0 / 3.0;
+    if h as f64 / w as f64 == r {
+        return [0, 0, w, h];
+    }
+    let h2 = (h as f64 / r) as u32;
+    let top = ((h - h2) as f64 / 2.0) as u32;
+    let bottom = ((h + h2) as f64 / 2.0) as u32;
+    [0, top, w, bottom - top]
+}
+
 /// Official preprocessing of one frame against its background (see the module docs).
 pub fn preprocess(img: &RgbImage, bg: &RgbImage, size: [usize; 2]) -> Result<Vec<f32>, String> {
     if img.dimensions() != bg.dimensions() {
@@ -142,18 +158,12 @@ pub fn preprocess(img: &RgbImage, bg: &RgbImage, size: [usize; 2]) -> Result<Vec
         }))
     });
     let portrait = if diff.width() > diff.height() {
-        imageops::rotate270(&diff)
+        imageops::rotate90(&diff)
     } else {
         diff
     };
-    let (w, h) = portrait.dimensions();
-    let (cw, ch) = if h * 3 > w * 4 {
-        (w, (w * 4 + 1) / 3)
-    } else {
-        ((h * 3 + 2) / 4, h)
-    };
-    let (cw, ch) = (cw.min(w), ch.min(h));
-    let cropped = imageops::crop_imm(&portrait, (w - cw) / 2, (h - ch) / 2, cw, ch).to_image();
+    let [x0, y0, cw, ch] = official_crop(portrait.width(), portrait.height());
+    let cropped = imageops::crop_imm(&portrait, x0, y0, cw, ch).to_image();
     let resized = imageops::resize(
         &cropped,
         size[1] as u32,
@@ -824,11 +834,27 @@ mod tests {
         let red = &out[..48];
         assert!(red.iter().any(|&v| v > 0.9));
         assert!(red.iter().all(|&v| v >= grey - 1e-6));
-        // counter-clockwise rotation takes the top-left corner of a landscape frame to the
-        // bottom-left of the portrait one
+        // clockwise rotation takes the top-left corner of a landscape frame to the top-right
+        // of the portrait one
         let at = |y: usize, x: usize| red[y * 6 + x];
-        assert!(at(7, 0) > 0.9, "{}", at(7, 0));
-        assert!((at(0, 5) - grey).abs() < 1e-6);
+        assert!(at(0, 5) > 0.9, "{}", at(0, 5));
+        assert!((at(7, 0) - grey).abs() < 1e-6);
+    }
+
+    /// The crop against the official slice computed by Python
+    /// (`h2 = int(h/r); img[int((h-h2)/2):int((h+h2)/2)]`, r = 4/3).
+    #[test]
+    fn crop_is_the_official_slice() {
+        for (w, h, want) in [
+            (240, 320, [0, 0, 240, 320]),
+            (240, 240, [0, 30, 240, 180]),
+            (240, 241, [0, 30, 240, 180]),
+            (100, 200, [0, 25, 100, 150]),
+            (77, 101, [0, 13, 77, 75]),
+            (90, 120, [0, 0, 90, 120]),
+        ] {
+            assert_eq!(official_crop(w, h), want, "{w}×{h}");
+        }
     }
 
     #[test]

@@ -118,46 +118,57 @@ fn config(v: &Variant, img: [usize; 2], frames: usize) -> VitConfig {
 /// everywhere (`qkv_bias = proj_bias = ffn_bias = True`), layer scale in every block
 /// (`init_values` 1, DINOv2 1e-5), no `cls_token`, no `mask_token`, `head` an identity.
 fn official_keys(v: &Variant) -> Vec<(String, Vec<usize>)> {
-    let [h, w] = IMG;
-    let (gh, gw) = (h / PATCH, w / PATCH);
+    official_keys_at(v, D, DEPTH, PATCH, IMG)
+}
+
+/// [`official_keys`] for an encoder `d` wide, `depth` blocks, `patch`-pixel patches on `img`.
+fn official_keys_at(
+    v: &Variant,
+    d: usize,
+    depth: usize,
+    patch: usize,
+    img: [usize; 2],
+) -> Vec<(String, Vec<usize>)> {
+    let [h, w] = img;
+    let (gh, gw) = (h / patch, w / patch);
     let mut keys: Vec<(String, Vec<usize>)> = Vec::new();
     let mut k = |name: &str, shape: &[usize]| keys.push((name.to_string(), shape.to_vec()));
     if v.clip {
-        // PatchEmbed3D: Conv3d(3, D, (tubelet, p, p)); learned table over 2 × 4 × 3 tubelets
-        k("patch_embed.proj.weight", &[D, 3, 2, PATCH, PATCH]);
-        k("pos_embed", &[1, 2 * gh * gw, D]);
+        // PatchEmbed3D: Conv3d(3, D, (tubelet, p, p)); learned table over 2 clip tubelets
+        k("patch_embed.proj.weight", &[d, 3, 2, patch, patch]);
+        k("pos_embed", &[1, 2 * gh * gw, d]);
     } else {
-        k("patch_embed.proj.weight", &[D, 6, PATCH, PATCH]);
+        k("patch_embed.proj.weight", &[d, 6, patch, patch]);
         // SinusoidalEmbed buffer: [axes, ceil(D / (2 · axes))]
-        k("pos_embed.frequency_bands", &[2, D.div_ceil(4)]);
+        k("pos_embed.frequency_bands", &[2, d.div_ceil(4)]);
     }
-    k("patch_embed.proj.bias", &[D]);
+    k("patch_embed.proj.bias", &[d]);
     if v.registers > 0 {
-        k("register_tokens", &[1, v.registers, D]);
+        k("register_tokens", &[1, v.registers, d]);
     }
-    for i in 0..DEPTH {
+    for i in 0..depth {
         let b = format!("blocks.{i}.");
         for (name, shape) in [
-            ("norm1.weight", vec![D]),
-            ("norm1.bias", vec![D]),
-            ("attn.qkv.weight", vec![3 * D, D]),
-            ("attn.qkv.bias", vec![3 * D]),
-            ("attn.proj.weight", vec![D, D]),
-            ("attn.proj.bias", vec![D]),
-            ("ls1.gamma", vec![D]),
-            ("norm2.weight", vec![D]),
-            ("norm2.bias", vec![D]),
-            ("mlp.fc1.weight", vec![4 * D, D]),
-            ("mlp.fc1.bias", vec![4 * D]),
-            ("mlp.fc2.weight", vec![D, 4 * D]),
-            ("mlp.fc2.bias", vec![D]),
-            ("ls2.gamma", vec![D]),
+            ("norm1.weight", vec![d]),
+            ("norm1.bias", vec![d]),
+            ("attn.qkv.weight", vec![3 * d, d]),
+            ("attn.qkv.bias", vec![3 * d]),
+            ("attn.proj.weight", vec![d, d]),
+            ("attn.proj.bias", vec![d]),
+            ("ls1.gamma", vec![d]),
+            ("norm2.weight", vec![d]),
+            ("norm2.bias", vec![d]),
+            ("mlp.fc1.weight", vec![4 * d, d]),
+            ("mlp.fc1.bias", vec![4 * d]),
+            ("mlp.fc2.weight", vec![d, 4 * d]),
+            ("mlp.fc2.bias", vec![d]),
+            ("ls2.gamma", vec![d]),
         ] {
             k(&format!("{b}{name}"), &shape);
         }
     }
-    k("norm.weight", &[D]);
-    k("norm.bias", &[D]);
+    k("norm.weight", &[d]);
+    k("norm.bias", &[d]);
     keys
 }
 
@@ -270,6 +281,51 @@ fn every_published_layout_loads() {
         let x = Tensor::<5>::zeros([1, cfg.num_frames, cfg.in_chans, h, w], &device);
         let out = vit.forward(x, None);
         assert_eq!(out.patches.dims(), [1, cfg.num_patches(), D]);
+    }
+}
+
+/// The shipped ViT-base recipes take a published encoder: the official key set at ViT-B/16 on
+/// 320×240 (V-JEPA: 4-frame clips in tubelets of 2) loads into the encoder each recipe builds,
+/// and the weights land where they belong.
+#[test]
+fn base_recipes_load_the_official_key_set() {
+    use sparsh_ssl::recipe::Recipe;
+    let recipes = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../assets/ssl");
+    let dir = tempfile::tempdir().unwrap();
+    let device = Device::flex();
+    for v in &VARIANTS {
+        let recipe = Recipe::load(&recipes.join(format!("{}_base.toml", v.name))).unwrap();
+        let cfg = recipe.encoder_config().unwrap();
+        let file = dir.path().join(format!("{}.safetensors", v.name));
+        let mut rng = Rng::new(3);
+        let tensors: Vec<Named> = official_keys_at(v, 768, 12, 16, [320, 240])
+            .into_iter()
+            .map(|(name, shape)| {
+                let vals = values(&name, &shape, &mut rng);
+                (format!("{}{name}", v.loaded), shape, vals)
+            })
+            .collect();
+        write_safetensors(&file, &tensors, None);
+        let vit = load_encoder(cfg.init(&device), &file, None)
+            .unwrap_or_else(|e| panic!("{}_base: {e}", v.name));
+        assert_eq!(
+            cfg.num_patches(),
+            if v.clip { 600 } else { 300 },
+            "{}",
+            v.name
+        );
+        assert_eq!(
+            host(vit.blocks[11].ls2.as_ref().unwrap().val()),
+            tensor(&tensors, &format!("{}blocks.11.ls2.gamma", v.loaded)),
+            "{}",
+            v.name
+        );
+        assert_eq!(
+            host(vit.norm.gamma.val()),
+            tensor(&tensors, &format!("{}norm.weight", v.loaded)),
+            "{}",
+            v.name
+        );
     }
 }
 

@@ -57,10 +57,14 @@ fn paper_base_recipes_take_a_step() {
         let enc = recipe.encoder_config().unwrap();
         assert_eq!(
             (enc.embed_dim, enc.depth, enc.num_heads, enc.patch_size),
-            (768, 12, 12, 14),
-            "{name}: ViT-B/14"
+            (768, 12, 12, 16),
+            "{name}: ViT-B/16"
         );
-        assert_eq!(enc.img_size, [224, 224], "{name}");
+        assert_eq!(
+            enc.img_size,
+            [320, 240],
+            "{name}: the official input, H × W"
+        );
         assert_eq!(enc.num_registers, registers, "{name}");
         // layer scale in every block, as the official encoders (DINOv2 initialises it at 1e-5)
         let gamma = if name == "dinov2" { 1e-5 } else { 1.0 };
@@ -79,7 +83,7 @@ fn paper_base_recipes_take_a_step() {
         let device = Device::flex().autodiff();
         let model = Trainee::init(&recipe, &device).unwrap();
         let mut optim = optimizer(&recipe);
-        let shape = [2, enc.num_frames, enc.in_chans, 224, 224];
+        let shape = [2, enc.num_frames, enc.in_chans, 320, 240];
         let mut rng = Rng::new(5);
         let values = (0..shape.iter().product::<usize>())
             .map(|_| rng.range_f64(0.4, 0.6) as f32)

@@ -10,9 +10,9 @@ pub struct InputGeometry {
     pub frame_width: usize,
     /// Frame height (pixels).
     pub frame_height: usize,
-    /// Landscape frames are turned counter-clockwise to portrait.
+    /// Landscape frames are turned clockwise to portrait.
     pub rotated: bool,
-    /// Left and top of the 4:3 crop in the (rotated) frame.
+    /// Left and top of the official crop in the (rotated) frame.
     pub crop_origin: [usize; 2],
     /// Width and height of the crop.
     pub crop_size: [usize; 2],
@@ -30,18 +30,13 @@ impl InputGeometry {
         } else {
             (frame_width, frame_height)
         };
-        let (cw, ch) = if h * 3 > w * 4 {
-            (w, (w * 4 + 1) / 3)
-        } else {
-            ((h * 3 + 2) / 4, h)
-        };
-        let (cw, ch) = (cw.min(w), ch.min(h));
+        let [x0, y0, cw, ch] = sparsh_ssl::data::official_crop(w as u32, h as u32);
         Self {
             frame_width,
             frame_height,
             rotated,
-            crop_origin: [(w - cw) / 2, (h - ch) / 2],
-            crop_size: [cw, ch],
+            crop_origin: [x0 as usize, y0 as usize],
+            crop_size: [cw as usize, ch as usize],
             size,
         }
     }
@@ -60,12 +55,12 @@ impl InputGeometry {
         0.5 * (sx + sy)
     }
 
-    /// A frame point in input coordinates: `rotate270` takes `(x, y)` to `(y, W − 1 − x)`, the
-    /// crop shifts it, the resize maps pixel centres `(c + ½)·s − ½`.
+    /// A frame point in input coordinates: `rotate90` (clockwise) takes `(x, y)` to
+    /// `(H − 1 − y, x)`, the crop shifts it, the resize maps pixel centres `(c + ½)·s − ½`.
     pub fn point_to_input(&self, p: [f64; 2]) -> [f64; 2] {
         let [x, y] = p;
         let (xr, yr) = if self.rotated {
-            (y, self.frame_width as f64 - 1.0 - x)
+            (self.frame_height as f64 - 1.0 - y, x)
         } else {
             (x, y)
         };
@@ -82,7 +77,7 @@ impl InputGeometry {
         let xr = (q[0] + 0.5) / sx - 0.5 + self.crop_origin[0] as f64;
         let yr = (q[1] + 0.5) / sy - 0.5 + self.crop_origin[1] as f64;
         if self.rotated {
-            [self.frame_width as f64 - 1.0 - yr, xr]
+            [yr, self.frame_height as f64 - 1.0 - xr]
         } else {
             [xr, yr]
         }
@@ -90,7 +85,7 @@ impl InputGeometry {
 
     /// A displacement in frame pixels as input pixels: turned with the frame, then scaled.
     pub fn vector_to_input(&self, v: [f64; 2]) -> [f64; 2] {
-        let [vx, vy] = if self.rotated { [v[1], -v[0]] } else { v };
+        let [vx, vy] = if self.rotated { [-v[1], v[0]] } else { v };
         let [sx, sy] = self.scale();
         [vx * sx, vy * sy]
     }
@@ -173,8 +168,8 @@ mod tests {
         }
     }
 
-    /// A displacement along the frame's +x (columns) points up the portrait input (−y), and one
-    /// along +y points right; lengths scale with the resize.
+    /// A displacement along the frame's +x (columns) points down the portrait input (+y), and
+    /// one along +y points left; lengths scale with the resize.
     #[test]
     fn vectors_turn_with_the_frame() {
         let g = InputGeometry::new(320, 240, [96, 72]);
@@ -184,9 +179,9 @@ mod tests {
         let b = g.point_to_input([110.0, 100.0]);
         let v = g.vector_to_input([10.0, 0.0]);
         assert!((b[0] - a[0] - v[0]).abs() < 1e-9 && (b[1] - a[1] - v[1]).abs() < 1e-9);
-        assert!(v[0].abs() < 1e-12 && (v[1] + 3.0).abs() < 1e-9);
+        assert!(v[0].abs() < 1e-12 && (v[1] - 3.0).abs() < 1e-9);
         let v = g.vector_to_input([0.0, 10.0]);
-        assert!((v[0] - 3.0).abs() < 1e-9 && v[1].abs() < 1e-12);
+        assert!((v[0] + 3.0).abs() < 1e-9 && v[1].abs() < 1e-12);
     }
 
     /// A field linear in frame x, given on a half-resolution grid, is resampled to the linear
