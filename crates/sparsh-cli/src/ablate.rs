@@ -1,5 +1,5 @@
-//! `sparsh ablate`: the sim-to-real ablation (`sparsh_bench::ablate`), with this crate's
-//! dataset generation as the simulator.
+//! `sparsh ablate`: the sim-to-real ablation (`sparsh_bench::ablate`), its progress on the
+//! terminal.
 
 use std::path::Path;
 use std::time::Instant;
@@ -8,36 +8,23 @@ use anyhow::Result;
 use sparsh_bench::ablate::{self, RunOptions, config::AblationConfig};
 use sparsh_ssl::device::Devices;
 
-use crate::dataset::{self, DeviceArg, GenerateOptions};
+use crate::dataset::Terminal;
 
 /// Runs the ablation of `config` into `out` and prints the table; the CNNs, the probes and the
 /// frozen encoder compute on `device` (the simulator's images are formed on the CPU).
 pub fn run(config: &Path, out: &Path, resume: bool, quick: bool, device: &Devices) -> Result<()> {
     let start = Instant::now();
     let cfg = AblationConfig::load(config)?;
-    let generate = |scene: &Path, dir: &Path| -> Result<(), String> {
-        if dir.join("manifest.json").is_file() {
-            return Ok(());
-        }
-        let options = GenerateOptions {
-            force: false,
-            resume: dir.exists(),
-            shard: None,
-            solver: None,
-            mechanics_stride: None,
-            device: DeviceArg::Cpu,
-        };
-        dataset::generate(scene, dir, options)
-            .map(|_| ())
-            .map_err(|e| format!("{e:#}"))
-    };
     let log = |line: &str| eprintln!("{line}");
     let opts = RunOptions {
         resume,
         quick,
         device: device.main().clone(),
     };
-    let rows = ablate::run(&cfg, out, opts, &generate, &log)?;
+    let terminal = Terminal::default();
+    let rows = ablate::run(&cfg, out, opts, &terminal, &log);
+    terminal.finish();
+    let rows = rows?;
     let refs: Vec<&ablate::Row> = rows.iter().collect();
     println!("{}", ablate::report::markdown(&refs));
     eprintln!(

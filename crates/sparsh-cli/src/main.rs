@@ -128,7 +128,7 @@ enum Command {
         /// Make only sequences s with s mod N = K (K from 0), into a directory shared by all
         /// shards; the last shard to finish writes the manifest.
         #[arg(long, value_name = "K/N")]
-        shard: Option<dataset::Shard>,
+        shard: Option<sparsh_gen::Shard>,
         /// Where images are formed: `cpu`, `gpu` (wgpu; an error without an adapter) or `auto`
         /// (the GPU if there is one, else the CPU).
         #[arg(long, value_enum, default_value = "cpu")]
@@ -257,7 +257,7 @@ enum Command {
         dir: PathBuf,
         /// Check only the sequences of shard K of N (those s with s mod N = K).
         #[arg(long, value_name = "K/N")]
-        shard: Option<dataset::Shard>,
+        shard: Option<sparsh_gen::Shard>,
         /// Also fail when the dataset (or the --shard) is not complete.
         #[arg(long)]
         complete: bool,
@@ -568,14 +568,13 @@ fn run(cli: Cli) -> Result<()> {
         } => dataset::generate(
             &scene,
             &out,
-            dataset::GenerateOptions {
+            sparsh_gen::GenerateOptions {
                 force,
                 resume,
                 shard,
-                solver: None,
-                mechanics_stride: None,
-                device,
+                ..Default::default()
             },
+            device,
         )
         .map(drop),
         Command::Bench {

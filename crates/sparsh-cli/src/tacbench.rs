@@ -10,7 +10,8 @@ use sparsh_bench::config::{BenchConfig, TaskConfig};
 use sparsh_bench::run::{RunOptions, run};
 use sparsh_ssl::device::Devices;
 
-use crate::dataset::{DeviceArg, GenerateOptions, generate};
+use crate::dataset::{DeviceArg, generate};
+use sparsh_gen::GenerateOptions;
 
 /// Runs (or resumes) the benchmark of `config` into `out`, its encoders and heads on `device`.
 pub fn tacbench(
@@ -89,13 +90,10 @@ pub fn tacbench(
             scene,
             &task.data,
             GenerateOptions {
-                force: false,
                 resume: true,
-                shard: None,
-                solver: None,
-                mechanics_stride: None,
-                device: DeviceArg::Cpu,
+                ..GenerateOptions::default()
             },
+            DeviceArg::Cpu,
         )
         .map(drop)
         .map_err(|e| sparsh_bench::Error::file(scene, format!("{e:#}")))

@@ -117,10 +117,6 @@ impl Default for RunOptions {
     }
 }
 
-/// What [`run`] needs from the simulator: make the dataset of a scene file in a directory
-/// (kept as is when it is already complete).
-pub type Generate<'a> = dyn Fn(&Path, &Path) -> Result<(), String> + 'a;
-
 /// The settings actually used (the config's, or the quick ones), and the device.
 #[derive(Debug, Clone)]
 struct Effective {
@@ -147,7 +143,7 @@ pub fn run(
     config: &AblationConfig,
     out: &Path,
     opts: RunOptions,
-    generate: &Generate<'_>,
+    observer: &dyn sparsh_gen::Observer,
     log: &dyn Fn(&str),
 ) -> Result<Vec<Row>, Error> {
     let copy = out.join("ablation.toml");
@@ -255,7 +251,7 @@ pub fn run(
             geometry,
             (&real, &real_inputs),
             encoder.as_ref(),
-            generate,
+            observer,
             log,
         )?;
         let json = serde_json::to_vec_pretty(&variant_rows).map_err(|e| Error::file(&record, e))?;
@@ -456,7 +452,7 @@ fn run_variant(
     geometry: PackGeometry,
     (real, real_inputs): (&CircleFrames, &[f32]),
     encoder: Option<&ProbeEncoder>,
-    generate: &Generate<'_>,
+    observer: &dyn sparsh_gen::Observer,
     log: &dyn Fn(&str),
 ) -> Result<Vec<Row>, Error> {
     let start = Instant::now();
@@ -464,7 +460,15 @@ fn run_variant(
     let scene_path = dir.join("scene.toml");
     crate::run::write_atomic(&scene_path, scene.as_bytes())?;
     let data_dir = dir.join("data");
-    generate(&scene_path, &data_dir).map_err(|e| Error::file(&scene_path, e))?;
+    // a complete dataset is kept as it is; an interrupted one is resumed
+    if !data_dir.join("manifest.json").is_file() {
+        let options = sparsh_gen::GenerateOptions {
+            resume: data_dir.exists(),
+            ..Default::default()
+        };
+        sparsh_gen::generate(&scene_path, &data_dir, options, None, observer)
+            .map_err(|e| Error::file(&scene_path, format!("{e:#}")))?;
+    }
     let probe_on = variant.probe.then_some(encoder).flatten();
     let mut inputs = Vec::new();
     let frames = data::synthetic(&data_dir, geometry, config.input_size, |f, bg| {
