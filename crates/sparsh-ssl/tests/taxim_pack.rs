@@ -124,18 +124,19 @@ fn each_pack_frame_is_an_unlabelled_sequence_seen_from_rest() {
             .iter()
             .all(|&v| v == GREY)
     );
-    // frame 0's red patch in the landscape top-left corner (16×12 pixels) lands in the portrait
-    // bottom-left corner (12 wide, 16 high; 6×8 after halving): red (100/255 + 0.5) stored as
-    // 8 bits, green and blue unchanged, so the pack's BGR was read as BGR
+    // frame 0's red patch in the landscape top-left corner (16×12 pixels) lands, turned
+    // clockwise as the official code turns frames, in the portrait top-right corner (12 wide,
+    // 16 high; 6×8 after halving): red (100/255 + 0.5) stored as 8 bits, green and blue
+    // unchanged, so the pack's BGR was read as BGR
     let f = d.sequences[0].frames[0].decoded().unwrap();
     let at = |c: usize, y: usize, x: usize| f[(c * h + y) * w + x];
-    assert_eq!(at(0, 28, 2), 227.0 / 255.0);
-    assert_eq!(at(1, 28, 2), GREY);
-    assert_eq!(at(2, 28, 2), GREY);
-    assert_eq!(at(0, 2, 20), GREY);
-    // frame 1's patch (top-right corner) lands top-left
+    assert_eq!(at(0, 2, w - 3), 227.0 / 255.0);
+    assert_eq!(at(1, 2, w - 3), GREY);
+    assert_eq!(at(2, 2, w - 3), GREY);
+    assert_eq!(at(0, h - 4, 2), GREY);
+    // frame 1's patch (top-right corner) lands bottom-right
     assert_eq!(
-        d.sequences[1].frames[0].decoded().unwrap()[2 * w + 2],
+        d.sequences[1].frames[0].decoded().unwrap()[(h - 3) * w + w - 3],
         227.0 / 255.0
     );
 
