@@ -7,9 +7,9 @@ use burn::module::{Module, Param};
 use burn::optim::{AdamWConfig, GradientsParams};
 use burn::prelude::*;
 use sparsh_ssl::data::HostBatch;
+use sparsh_ssl::device::seeded_module;
 use sparsh_ssl::probe::{AttentiveProbe, AttentiveProbeConfig};
 use sparsh_ssl::rng::Rng;
-use sparsh_ssl::train::seeded_module;
 use sparsh_ssl::vit::Vit;
 
 use crate::tasks::{Head, Metric, Sample, score};

@@ -8,7 +8,7 @@ use sparsh_ssl::data::generated_sequences;
 use sparsh_ssl::device::Devices;
 use sparsh_ssl::embed::{Embeddings, FrozenEncoder, Pool};
 use sparsh_ssl::recipe::Recipe;
-use sparsh_ssl::train::write_atomic;
+use sparsh_ssl::weights::write_atomic;
 
 use crate::progress::Progress;
 

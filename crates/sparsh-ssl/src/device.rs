@@ -6,8 +6,8 @@
 use std::fmt;
 use std::str::FromStr;
 
-use burn::module::Module;
-use burn::prelude::Device;
+use burn::module::{Module, ModuleVisitor, Param};
+use burn::prelude::{Device, Tensor};
 use burn::tensor::DeviceType;
 
 use crate::Error;
@@ -228,4 +228,37 @@ pub fn on_device<M: Module>(module: M, device: &Device) -> M {
     } else {
         module.fork(device)
     }
+}
+
+static INIT_LOCK: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
+/// Runs `f` (a model initialization) with burn's random generator seeded by `seed`, holding a
+/// process-wide lock: burn's generator is global, so initializations running at the same time
+/// on other threads would otherwise interleave their draws and break determinism.
+pub fn seeded<T>(device: &Device, seed: u64, f: impl FnOnce() -> T) -> T {
+    let _guard = INIT_LOCK.lock().unwrap_or_else(|e| e.into_inner());
+    device.seed(seed);
+    f()
+}
+
+/// Draws every parameter of `module` that is still uninitialized: burn initializes parameters
+/// lazily, on first use, so without this the draws happen wherever the module is first used
+/// (another thread, after another seeding) instead of under [`seeded`].
+pub fn draw_parameters<M: Module>(module: &M) {
+    struct Draw;
+    impl ModuleVisitor for Draw {
+        fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+            let _ = param.val();
+        }
+    }
+    module.visit(&mut Draw);
+}
+
+/// [`seeded`] for a module initialization, with every parameter drawn under the seed.
+pub fn seeded_module<M: Module>(device: &Device, seed: u64, f: impl FnOnce() -> M) -> M {
+    seeded(device, seed, || {
+        let module = f();
+        draw_parameters(&module);
+        module
+    })
 }

@@ -470,7 +470,7 @@ impl Dino {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::train::seeded;
+    use crate::device::seeded;
     use crate::vit::VitConfig;
 
     /// KoLeo: −ln 2 for two antipodal unit vectors (distance 2); large for a nearly collapsed

@@ -18,17 +18,9 @@ use rayon::prelude::*;
 use crate::Error;
 use crate::data::{GeneratedSequence, preprocess, read_image};
 use crate::host::HostVit;
+pub use crate::host::Pool;
 use crate::recipe::Recipe;
 use crate::vit::Vit;
-
-/// How the tokens of one sample become its features.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Pool {
-    /// The mean over the patch tokens: `[dim]` per sample.
-    Mean,
-    /// Every patch token: `[tokens, dim]` per sample.
-    None,
-}
 
 /// A trained encoder with its recipe's input: image size and frame stacking.
 #[derive(Debug, Clone)]

@@ -24,9 +24,17 @@ use burn::nn::{LayerNorm, Linear};
 use burn::prelude::*;
 use rayon::prelude::*;
 
-use crate::embed::Pool;
 use crate::kernels::{gelu_in_place, layer_norm_rows, softmax_in_place};
 use crate::vit::{Block, LN_EPS, Vit};
+
+/// How the tokens of one sample become its features.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Pool {
+    /// The mean over the patch tokens: `[dim]` per sample.
+    Mean,
+    /// Every patch token: `[tokens, dim]` per sample.
+    None,
+}
 
 /// Token rows in one product, about at most. The GEMM reads the weights where they are when a
 /// product has at most 8 micro-tiles of 6 token columns (`gemm-common`'s packing threshold, f32

@@ -369,7 +369,7 @@ pub fn attentive_score(
     let (ymean, ystd) = column_stats(&train, 3, 1e-9, |i, k| y[i][k]);
     let heads = if d % 64 == 0 { d / 64 } else { 1 };
     let cpu = Device::flex().autodiff();
-    let probe = crate::train::seeded_module(&cpu, seed, || {
+    let probe = crate::device::seeded_module(&cpu, seed, || {
         AttentiveProbeConfig::new(d, heads).init(&cpu)
     });
     let device = device.clone().autodiff();

@@ -22,7 +22,7 @@ use rayon::prelude::*;
 
 use crate::Error;
 use crate::data::{Dataset, HostBatch, Sampler};
-use crate::device::Devices;
+use crate::device::{Devices, seeded_module};
 use crate::dino::Dino;
 use crate::ema::momentum_at;
 use crate::jepa::Jepa;
@@ -32,46 +32,7 @@ use crate::probe::{ProbeScore, ProbeSet};
 use crate::recipe::{ObjectiveKind, Recipe};
 use crate::rng::Rng;
 use crate::vit::Vit;
-
-static INIT_LOCK: std::sync::Mutex<()> = std::sync::Mutex::new(());
-
-/// Runs `f` (a model initialization) with burn's random generator seeded by `seed`, holding a
-/// process-wide lock: burn's generator is global, so initializations running at the same time
-/// on other threads would otherwise interleave their draws and break determinism.
-pub fn seeded<T>(device: &Device, seed: u64, f: impl FnOnce() -> T) -> T {
-    let _guard = INIT_LOCK.lock().unwrap_or_else(|e| e.into_inner());
-    device.seed(seed);
-    f()
-}
-
-/// Draws every parameter of `module` that is still uninitialized: burn initializes parameters
-/// lazily, on first use, so without this the draws happen wherever the module is first used
-/// (another thread, after another seeding) instead of under [`seeded`].
-pub fn draw_parameters<M: Module>(module: &M) {
-    struct Draw;
-    impl ModuleVisitor for Draw {
-        fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
-            let _ = param.val();
-        }
-    }
-    module.visit(&mut Draw);
-}
-
-/// [`seeded`] for a module initialization, with every parameter drawn under the seed.
-pub fn seeded_module<M: Module>(device: &Device, seed: u64, f: impl FnOnce() -> M) -> M {
-    seeded(device, seed, || {
-        let module = f();
-        draw_parameters(&module);
-        module
-    })
-}
-
-/// Writes `bytes` to `path` through a temporary file and a rename.
-pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), Error> {
-    let tmp = path.with_extension("tmp-write");
-    std::fs::write(&tmp, bytes).map_err(|e| Error::file(&tmp, e))?;
-    std::fs::rename(&tmp, path).map_err(|e| Error::file(path, e))
-}
+use crate::weights::write_atomic;
 
 /// A model under training, one variant per objective.
 // One value per run: boxing the larger variants would buy nothing.

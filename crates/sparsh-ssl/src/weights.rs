@@ -201,7 +201,7 @@ pub fn save_encoder(vit: &Vit, path: &Path) -> Result<(), Error> {
         .collect::<Vec<_>>();
     let metadata = HashMap::from([(POS_GRID_METADATA.to_string(), grid.join(","))]);
     let data = safetensors::serialize(views, Some(metadata)).map_err(|e| Error::file(path, e))?;
-    crate::train::write_atomic(path, &data)
+    write_atomic(path, &data)
 }
 
 /// Reads official-layout tensors under `prefix` and maps them onto the encoder.
@@ -619,4 +619,11 @@ pub fn load_encoder(mut vit: Vit, path: &Path, prefix: Option<&str>) -> Result<V
         ));
     }
     Ok(vit)
+}
+
+/// Writes `bytes` to `path` through a temporary file and a rename.
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), Error> {
+    let tmp = path.with_extension("tmp-write");
+    std::fs::write(&tmp, bytes).map_err(|e| Error::file(&tmp, e))?;
+    std::fs::rename(&tmp, path).map_err(|e| Error::file(path, e))
 }

@@ -8,6 +8,7 @@ mod common;
 use burn::module::{Module, ModuleVisitor, Param};
 use burn::prelude::*;
 use serde_json::{Value, json};
+use sparsh_ssl::device::seeded_module;
 use sparsh_ssl::dino::{
     TeacherNorm, cross_entropy, dino_cross_entropy, koleo, teacher_targets, updated_center,
 };
@@ -16,7 +17,6 @@ use sparsh_ssl::jepa::{JepaLoss, TargetNorm, latent_loss, regression_targets};
 use sparsh_ssl::mae::masked_mse;
 use sparsh_ssl::recipe::{DinoSection, OptimSection};
 use sparsh_ssl::rng::Rng;
-use sparsh_ssl::train::seeded_module;
 use sparsh_ssl::vit::VitConfig;
 
 /// Relative tolerance of an f32 result against the float64 reference.

@@ -8,11 +8,11 @@ use image::{Rgb, RgbImage};
 use sparsh_ssl::data::{
     AugmentConfig, Dataset, Sampler, Stacking, generated_sequences, preprocess, read_image,
 };
-use sparsh_ssl::device::Devices;
+use sparsh_ssl::device::{Devices, seeded_module};
 use sparsh_ssl::probe::ProbeSet;
 use sparsh_ssl::recipe::Recipe;
 use sparsh_ssl::train::{
-    RunOptions, load_data, probe_encoders, probe_patches, probe_random_encoders, run, seeded_module,
+    RunOptions, load_data, probe_encoders, probe_patches, probe_random_encoders, run,
 };
 use sparsh_ssl::weights::{load_encoder, save_encoder};
 

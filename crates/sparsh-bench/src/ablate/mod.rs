@@ -28,9 +28,9 @@ use burn::prelude::*;
 use serde::{Deserialize, Serialize};
 use sparsh_optics::pack::CalibrationPack;
 use sparsh_ssl::data::Stacking;
+use sparsh_ssl::device::seeded_module;
 use sparsh_ssl::probe::{AttentiveProbe, AttentiveProbeConfig};
 use sparsh_ssl::recipe::Recipe;
-use sparsh_ssl::train::seeded_module;
 use sparsh_ssl::vit::Vit;
 
 use crate::Error;

@@ -364,7 +364,7 @@ mod tests {
         let (h, w) = (DISC_H, DISC_W);
         let (images, pairs) = discs(320, 5);
         let device = Device::flex().autodiff();
-        let model = sparsh_ssl::train::seeded_module(&device, 3, || CircleCnn::new(&device));
+        let model = sparsh_ssl::device::seeded_module(&device, 3, || CircleCnn::new(&device));
         let forward = disc_forward(&images);
         let (train, test) = pairs.split_at(256);
         let opts = TrainOptions {
@@ -428,7 +428,7 @@ mod tests {
         let rows: Vec<usize> = test.iter().map(|t| t.0).collect();
         let run = |device: &Device| {
             let cpu = Device::flex().autodiff();
-            let model = sparsh_ssl::train::seeded_module(&cpu, 3, || CircleCnn::new(&cpu));
+            let model = sparsh_ssl::device::seeded_module(&cpu, 3, || CircleCnn::new(&cpu));
             let t0 = std::time::Instant::now();
             let fitted = fit(model, [w, h], &forward, train, val, opts, 1, device);
             let preds = fitted.predict(&forward, &rows);

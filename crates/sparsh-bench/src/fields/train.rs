@@ -7,7 +7,7 @@ use burn::prelude::*;
 use sparsh_ssl::rng::Rng;
 
 use crate::probe::RowStats;
-use sparsh_ssl::train::seeded_module;
+use sparsh_ssl::device::seeded_module;
 use sparsh_ssl::vit::Vit;
 
 use super::data::{FramePairs, Pair, PairTruth};
