@@ -564,12 +564,10 @@ fn export_writes_the_official_sparsh_layout() {
             .unwrap()
     };
     let (spheres, cones) = (first_of("spheres", "train"), first_of("cones", "train"));
-    for (sequence, sensor, length) in [(spheres, "digit", 16), (cones, "gelsight_mini", 12)] {
-        let family = if sequence == spheres {
-            "spheres"
-        } else {
-            "cones"
-        };
+    for (family, sequence, sensor, length) in [
+        ("spheres", spheres, "digit", 16),
+        ("cones", cones, "gelsight_mini", 12),
+    ] {
         let batch = format!("force_slip/{sensor}/train/{family}/batch_{sequence:06}");
         let data = sparsh_bench::official::load(&out_dir.join(batch), [32, 24]).unwrap();
         assert_eq!(data.labels.len(), 1);

@@ -461,25 +461,23 @@ fn export_sequence(dir: &Path, out: &Path, seq: &Out, rows: &[Label]) -> Result<
             message,
         })
     };
-    let background = read(&seq.background)?;
+    let batch = out.join("force_slip").join(seq.sensor).join(seq.batch());
+    let bg = jpeg(&read(&seq.background)?, &batch)?;
     let frames = rows
         .iter()
-        .map(|r| read(&format!("frames/{:06}.png", r.frame)))
+        .map(|r| jpeg(&read(&format!("frames/{:06}.png", r.frame))?, &batch))
         .collect::<Result<Vec<_>, _>>()?;
 
     // force/slip: frame 0 of the batch is the background, the only frame out of contact that
     // the official loader's `np.where(in_contact == 0)[0][0]` can pick
-    let batch = out.join("force_slip").join(seq.sensor).join(seq.batch());
     std::fs::create_dir_all(&batch).map_err(io_err(&batch))?;
-    let mut list = Vec::with_capacity(frames.len() + 1);
-    list.push(Py::Bytes(jpeg(&background, &batch)?));
-    for f in &frames {
-        list.push(Py::Bytes(jpeg(f, &batch)?));
-    }
-    let all = Py::List(list);
+    let with_bg = std::iter::once(&bg)
+        .chain(&frames)
+        .map(|b| Py::Bytes(b.clone()))
+        .collect();
     write_atomic(
         &batch.join(format!("dataset_{}_00.pkl", seq.sensor)),
-        &to_pickle(&all),
+        &to_pickle(&Py::List(with_bg)),
     )?;
     let in_contact = std::iter::once(false)
         .chain(rows.iter().map(|r| r.contact_area_mm2 > 0.0))
@@ -503,13 +501,8 @@ fn export_sequence(dir: &Path, out: &Path, seq: &Out, rows: &[Label]) -> Result<
     for d in [&object, &bgs] {
         std::fs::create_dir_all(d).map_err(io_err(d))?;
     }
-    let Py::List(mut list) = all else {
-        unreachable!("built as a list")
-    };
-    let Py::Bytes(bg) = list.remove(0) else {
-        unreachable!("the background was pushed first")
-    };
-    write_atomic(&object.join("dataset_0.pkl"), &to_pickle(&Py::List(list)))?;
+    let frames = Py::List(frames.into_iter().map(Py::Bytes).collect());
+    write_atomic(&object.join("dataset_0.pkl"), &to_pickle(&frames))?;
     write_atomic(&bgs.join(format!("bg_{}.jpg", seq.object())), &bg)
 }
 
