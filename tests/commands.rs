@@ -479,3 +479,133 @@ fn calibrate_then_sim2real_on_taxims_pack() {
     let fig = image::open(&figure).unwrap();
     assert_eq!((fig.width(), fig.height()), (3 * w, h));
 }
+
+/// FLOPs of one reference training step, enumerated matrix product by matrix product (2·M·N·K
+/// each, × 3 for forward and backward) for `tokens` tokens of `patch_values` values per image,
+/// width `d`, `blocks` blocks, `batch` images: a count written apart from
+/// `sparsh_ssl::bench::ReferenceStep::flops`.
+fn enumerated_step_flops(tokens: f64, patch_values: f64, d: f64, blocks: f64, batch: f64) -> f64 {
+    let product = |m: f64, n: f64, k: f64| 2.0 * m * n * k;
+    let embed = product(tokens, d, patch_values);
+    let head = product(tokens, patch_values, d);
+    let block = 3.0 * product(tokens, d, d) // q, k, v
+        + product(tokens, tokens, d) // q kᵀ, all heads together
+        + product(tokens, d, tokens) // attention · v
+        + product(tokens, d, d) // output projection
+        + product(tokens, 4.0 * d, d) // MLP up
+        + product(tokens, d, 4.0 * d); // MLP down
+    3.0 * batch * (embed + head + blocks * block)
+}
+
+/// `bench-train` on the CPU: the reference step's FLOPs equal an enumeration of its matrix
+/// products, every time is positive, and a step compared with itself on the same device is the
+/// same bit for bit; on wgpu (lavapipe here) the recipe's step agrees with the CPU's to the
+/// tolerances of the device tests. Bad input is refused on one line, with nothing written.
+#[test]
+fn bench_train_times_steps_and_compares_devices() {
+    let tmp = tempfile::tempdir().unwrap();
+    let recipe = tmp.path().join("recipe.toml");
+    std::fs::write(
+        &recipe,
+        RECIPE.replace("batch_size = 8", "batch_size = 8\nmicro_batches = 2"),
+    )
+    .unwrap();
+    let recipe = recipe.to_str().unwrap();
+    let json = tmp.path().join("bench.json");
+    let run = |device: &str| {
+        let out = sparsh(&[
+            "--quiet",
+            "bench-train",
+            "--reference",
+            "tiny",
+            "--input",
+            "32x24",
+            "--patch",
+            "8",
+            "--batch",
+            "2",
+            "--warmup",
+            "0",
+            "--steps",
+            "1",
+            "--config",
+            recipe,
+            "--parity",
+            "--device",
+            device,
+            "--json",
+            json.to_str().unwrap(),
+        ]);
+        stdout(&out);
+        let report: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+        report
+    };
+    let report = run("cpu");
+    let rows = report["rows"].as_array().unwrap();
+    assert_eq!(rows.len(), 2, "{report}");
+    for row in rows {
+        assert!(row["seconds_per_step"].as_f64().unwrap() > 0.0, "{row}");
+        assert_eq!(row["batch"], 2, "{row}");
+    }
+    // tiny: 192 wide, 6 blocks; 32×24 at patch 8 is 4 × 3 = 12 tokens of 6·8·8 values
+    let expected = enumerated_step_flops(12.0, 384.0, 192.0, 6.0, 2.0) / 1e9;
+    let gflop = rows[0]["gflop_per_step"].as_f64().unwrap();
+    assert!(
+        (gflop - expected).abs() <= 1e-9 * expected,
+        "{gflop} vs {expected}"
+    );
+    assert!(
+        rows[1]["gflop_per_step"].is_null(),
+        "a recipe's FLOPs are not counted"
+    );
+    let parity = &report["parity"][0];
+    assert_eq!(parity["batch"], 4, "two images per micro-batch: {parity}");
+    for key in ["loss_relative", "gradient_relative", "weight_abs"] {
+        assert_eq!(
+            parity[key].as_f64(),
+            Some(0.0),
+            "CPU against CPU, {key}: {parity}"
+        );
+    }
+    if common::wgpu_or_skip() {
+        let report = run("wgpu");
+        let p = &report["parity"][0];
+        assert!(p["loss_relative"].as_f64().unwrap() <= 1e-5, "{p}");
+        assert!(p["gradient_relative"].as_f64().unwrap() <= 1e-3, "{p}");
+        assert!(p["weight_abs"].as_f64().unwrap() <= 2e-5, "{p}");
+        assert!(
+            p["undetermined_weight_abs"].as_f64().unwrap() <= 2.2e-3,
+            "{p}"
+        );
+    }
+
+    let missing = tmp.path().join("refused.json");
+    let refused = |extra: &[&str], needle: &str| {
+        let mut args = vec!["bench-train", "--json", missing.to_str().unwrap()];
+        args.extend_from_slice(extra);
+        common::assert_user_error(&sparsh(&args), needle);
+    };
+    refused(&[], "nothing to time");
+    refused(&["--reference", "huge"], "expected tiny, small or base");
+    refused(
+        &["--reference", "tiny", "--input", "32"],
+        "expected HEIGHTxWIDTH",
+    );
+    refused(
+        &["--reference", "tiny", "--input", "30x24", "--patch", "8"],
+        "30",
+    );
+    refused(&["--reference", "tiny", "--steps", "0"], "--steps");
+    refused(&["--config", recipe, "--batch", "3"], "micro-batches");
+    common::assert_device_refused(
+        &[
+            "bench-train",
+            "--reference",
+            "tiny",
+            "--json",
+            missing.to_str().unwrap(),
+        ],
+        &missing,
+    );
+}

@@ -1,6 +1,7 @@
 //! `sparsh`: the command line of the sparsh tactile simulator.
 
 mod ablate;
+mod bench_train;
 mod dataset;
 mod embed;
 mod fieldprobe;
@@ -166,6 +167,49 @@ enum Command {
         /// `gpu` or `auto` also time each model on the GPU (`auto`: if there is an adapter).
         #[arg(long, value_enum, default_value = "cpu")]
         device: dataset::DeviceArg,
+    },
+    /// Time training steps on a device: the reference step (a ViT, a linear pixel head, MSE,
+    /// Adam; the step `crates/sparsh-ssl/benches/torch_step.py` takes in PyTorch) and recipes'
+    /// own steps, in images/s, with the device's f32 matrix-product rate; `--parity` also
+    /// compares one step of each recipe on the CPU and on the device.
+    BenchTrain {
+        /// Recipe (TOML) whose training step to time, at its batch size unless --batch; repeat
+        /// for several.
+        #[arg(long = "config")]
+        configs: Vec<PathBuf>,
+        /// Reference steps to time: ViT sizes tiny (192 wide, 6 blocks), small (384, 12), base
+        /// (768, 12), comma-separated.
+        #[arg(long, value_delimiter = ',')]
+        reference: Vec<String>,
+        /// The reference input, HEIGHTxWIDTH in pixels (6 channels; the official input is
+        /// 320x240).
+        #[arg(long, default_value = "320x240")]
+        input: String,
+        /// The reference patch side in pixels.
+        #[arg(long, default_value_t = 16)]
+        patch: usize,
+        /// Images per step: the reference's (default 32) and each recipe's in place of its own.
+        #[arg(long)]
+        batch: Option<usize>,
+        /// Untimed steps before the timed ones.
+        #[arg(long, default_value_t = 2)]
+        warmup: usize,
+        /// Timed steps; the median is reported.
+        #[arg(long, default_value_t = 5)]
+        steps: usize,
+        /// Also time an N×N×N f32 matrix product on the device (the rate a step could reach).
+        #[arg(long, default_value_t = 0, value_name = "N")]
+        gemm: usize,
+        /// Also take one step of each recipe on the CPU and on the device from the same weights
+        /// and batch (two images per micro-batch) and compare losses, gradients and updated
+        /// weights.
+        #[arg(long)]
+        parity: bool,
+        /// Also write the rows as JSON here.
+        #[arg(long)]
+        json: Option<PathBuf>,
+        #[command(flatten)]
+        device: DeviceArgs,
     },
     /// Write a dataset in another project's layout.
     Export {
@@ -593,6 +637,33 @@ fn run(cli: Cli) -> Result<()> {
             repeats,
             &thread_counts,
             device,
+        ),
+        Command::BenchTrain {
+            configs,
+            reference,
+            input,
+            patch,
+            batch,
+            warmup,
+            steps,
+            gemm,
+            parity,
+            json,
+            device,
+        } => bench_train::bench_train(
+            &bench_train::BenchTrain {
+                configs: &configs,
+                reference: &reference,
+                input: bench_train::parse_input(&input).map_err(anyhow::Error::msg)?,
+                patch,
+                batch,
+                warmup,
+                steps,
+                gemm,
+                parity,
+                json: json.as_deref(),
+            },
+            &device.choose_one("bench-train")?,
         ),
         Command::Verify {
             dir,

@@ -17,6 +17,11 @@ pub fn configure(quiet: bool, interval_s: f64) {
     INTERVAL_MS.store((interval_s * 1e3).round() as u64, Ordering::Relaxed);
 }
 
+/// Whether `--quiet` was given.
+pub fn quiet() -> bool {
+    QUIET.load(Ordering::Relaxed)
+}
+
 /// Progress of one command over `total` units of work.
 #[derive(Debug)]
 pub struct Progress {

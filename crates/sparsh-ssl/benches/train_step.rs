@@ -29,29 +29,13 @@ use std::path::Path;
 use std::process::Command;
 use std::time::Instant;
 
-use burn::module::Module;
-use burn::nn::{Linear, LinearConfig};
-use burn::optim::AdamConfig;
 use burn::prelude::*;
-use sparsh_ssl::data::HostBatch;
+use sparsh_ssl::bench::{ReferenceStep, time_recipe};
 use sparsh_ssl::device::{DeviceKind, Devices};
 use sparsh_ssl::recipe::Recipe;
-use sparsh_ssl::rng::Rng;
-use sparsh_ssl::train::{Trainee, micro_batch_gradients, optimizer};
-use sparsh_ssl::vit::{Vit, VitConfig, patchify};
 
 /// Images per step of the reference step.
 const BATCH: usize = 32;
-/// Tokens of the reference input (12 × 12 patches of 8 px).
-const TOKENS: usize = 144;
-/// Values per patch (6 channels × 8 × 8).
-const PATCH_DIM: usize = 384;
-
-#[derive(Module, Debug)]
-struct Reference {
-    vit: Vit,
-    head: Linear,
-}
 
 /// The 1-, 5- and 15-minute load averages (the machine's other work).
 fn load_average() -> String {
@@ -189,63 +173,27 @@ fn gemm_gflops(device: &Device) -> f64 {
     2.0 * (n * n * n) as f64 / median(times) / 1e9
 }
 
-/// FLOPs of one reference training step at `width` / `depth` (see the module comment): per
-/// token, the patch embedding and head (2 · 2·384·D), and per block q/k/v, projection and MLP
-/// (24 D²) and attention (4 N D); times 32 images × 144 tokens; times 3.
-fn reference_flops([width, depth, _]: [usize; 3]) -> f64 {
-    let d = width as f64;
-    let per_token =
-        4.0 * PATCH_DIM as f64 * d + depth as f64 * (24.0 * d * d + 4.0 * TOKENS as f64 * d);
-    3.0 * per_token * (BATCH * TOKENS) as f64
+/// The reference step (`sparsh_ssl::bench::ReferenceStep`: 6×96×96, patch 8, batch 32) of
+/// the ViT `size` names.
+fn reference_step(size: &str) -> ReferenceStep {
+    ReferenceStep::new(size, [96, 96], 8, BATCH).unwrap()
 }
 
-/// The reference step of a ViT of `width` / `depth` / `heads` with the batch split into `parts`
-/// micro-batches ([`micro_batch_gradients`], the trainer's path; 1 = the plain whole-batch step):
-/// median s/step of `timed` steps after `warmup`, and the mean CPU s/step.
+/// The reference step with the batch split into `parts` micro-batches (1 = the plain whole-batch
+/// step): median s/step of `timed` steps after `warmup`, and the mean CPU s/step.
 fn reference(
     device: &Device,
-    [width, depth, heads]: [usize; 3],
+    size: &str,
     parts: usize,
     (warmup, timed): (usize, usize),
 ) -> (f64, f64) {
-    let cfg = VitConfig::new([96, 96], 8)
-        .with_embed_dim(width)
-        .with_depth(depth)
-        .with_num_heads(heads);
-    let mut model = Reference {
-        vit: cfg.init(device),
-        head: LinearConfig::new(width, cfg.patch_dim()).init(device),
-    };
-    let mut optim = AdamConfig::new().init();
-    let x = Tensor::<5>::random(
-        [BATCH, 1, 6, 96, 96],
-        burn::tensor::Distribution::Default,
-        device,
-    );
-    let target = patchify(x.clone(), 8, 1);
-    let mut times = Vec::new();
-    let mut cpu = 0.0;
-    for i in 0..warmup + timed {
-        let t0 = Instant::now();
-        let c0 = cpu_seconds();
-        let (grads, _, _) = micro_batch_gradients(
-            &model,
-            x.clone(),
-            std::slice::from_ref(device),
-            parts,
-            |m, x, rows| {
-                let pred = m.head.forward(m.vit.forward(x, None).patches);
-                let loss = (pred - target.clone().slice(rows)).powi_scalar(2).mean();
-                (loss, None)
-            },
-        );
-        model = optim.step(1e-4, model, grads);
-        if i >= warmup {
-            times.push(t0.elapsed().as_secs_f64());
-            cpu += cpu_seconds() - c0;
+    let mut c0 = cpu_seconds();
+    let t = reference_step(size).time(device, parts, (warmup, timed), |i, _| {
+        if i + 1 == warmup {
+            c0 = cpu_seconds();
         }
-    }
-    (median(times), cpu / timed as f64)
+    });
+    (t.seconds, (cpu_seconds() - c0) / timed as f64)
 }
 
 /// The same step in PyTorch on `threads` threads: (s/step, CPU s/step), `None` when the script
@@ -281,7 +229,7 @@ fn objective(
     file: &str,
     device: &Device,
     resize: Option<(usize, usize)>,
-    (warmup, timed): (usize, usize),
+    steps: (usize, usize),
 ) -> (f64, usize, usize) {
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../assets/ssl");
     let mut recipe = Recipe::load(&dir.join(format!("{file}.toml"))).unwrap();
@@ -289,39 +237,8 @@ fn objective(
         recipe.optim.batch_size = batch;
         recipe.optim.micro_batches = parts;
     }
-    let enc = recipe.encoder_config().unwrap();
-    let b = recipe.optim.batch_size;
-    let shape = [
-        b,
-        enc.num_frames,
-        enc.in_chans,
-        enc.img_size[0],
-        enc.img_size[1],
-    ];
-    let mut rng = Rng::new(1);
-    let values = (0..shape.iter().product::<usize>())
-        .map(|_| rng.uniform() as f32)
-        .collect();
-    let mut batch = HostBatch {
-        step: 0,
-        values,
-        shape,
-        forces: None,
-    };
-    let mut model = Trainee::init(&recipe, device).unwrap();
-    let mut optim = optimizer(&recipe);
-    let mut times = Vec::new();
-    for i in 0..warmup + timed {
-        batch.step = i;
-        let t0 = Instant::now();
-        model = model
-            .train_step(&recipe, &mut optim, &batch, std::slice::from_ref(device))
-            .0;
-        if i >= warmup {
-            times.push(t0.elapsed().as_secs_f64());
-        }
-    }
-    (median(times), b, recipe.optim.micro_batches)
+    let t = time_recipe(&recipe, device, steps, |_, _| {}).unwrap();
+    (t.seconds, t.batch, recipe.optim.micro_batches)
 }
 
 fn main() {
@@ -340,9 +257,9 @@ fn main() {
         load_average()
     );
     let sizes = [
-        ("tiny", [192, 6, 3], (2, 5), (3, 10)),
-        ("small", [384, 12, 6], (2, 5), (2, 5)),
-        ("base", [768, 12, 12], (1, 3), (1, 3)),
+        ("tiny", (2, 5), (3, 10)),
+        ("small", (2, 5), (2, 5)),
+        ("base", (1, 3), (1, 3)),
     ];
     if sizes.iter().any(|s| wanted(s.0, "reference")) {
         let peak = peak(threads);
@@ -368,11 +285,12 @@ fn main() {
             "| ViT | GFLOP/step | burn whole batch | burn 2 micro-batches | PyTorch | burn (2) / PyTorch | burn (2) of peak | PyTorch of peak |"
         );
         println!("|---|---|---|---|---|---|---|---|");
-        for (name, size, steps, torch_steps) in sizes {
+        for (name, steps, torch_steps) in sizes {
             if !wanted(name, "reference") {
                 continue;
             }
-            let flops = reference_flops(size);
+            let step = reference_step(name);
+            let flops = step.flops();
             let cell = |s: f64, cpu: f64| {
                 format!(
                     "{s:.3} s/step, {:.1} images/s ({cpu:.2} CPU s)",
@@ -382,8 +300,8 @@ fn main() {
             let share = |s: f64| {
                 peak_flops.map_or("–".into(), |p| format!("{:.0} %", 100.0 * flops / s / p))
             };
-            let (whole, whole_cpu) = reference(&device, size, 1, steps);
-            let (split, split_cpu) = reference(&device, size, 2, steps);
+            let (whole, whole_cpu) = reference(&device, name, 1, steps);
+            let (split, split_cpu) = reference(&device, name, 2, steps);
             let torch = version
                 .as_ref()
                 .and_then(|_| torch_reference(name, threads, torch_steps));
@@ -393,8 +311,8 @@ fn main() {
                 });
             println!(
                 "| {name} ({}×{}) | {:.0} | {} | {} | {torch_cell} | {ratio} | {} | {torch_share} |",
-                size[0],
-                size[1],
+                step.vit[0],
+                step.vit[1],
                 flops / 1e9,
                 cell(whole, whole_cpu),
                 cell(split, split_cpu),
@@ -402,7 +320,7 @@ fn main() {
             );
         }
         // a GPU's images/s estimated the same way: utilisation × peak FLOP/s / FLOPs per image
-        let base = reference_flops(sizes[2].1) / BATCH as f64;
+        let base = reference_step("base").flops() / BATCH as f64;
         println!(
             "estimate, not a measurement: an A100 at 40 % of its 312 TFLOP/s bf16 peak would take \
              the base step at 0.4 × 312e12 / {:.1e} = {:.0} images/s",

@@ -11,8 +11,10 @@
 //! - [`embed`]: a trained encoder as a frozen feature extractor of tactile frames.
 //! - [`recipe`], [`train`], [`probe`]: training recipes, the training loop, the online force probe.
 //! - [`kernels`]: the exact GELU and layer norm, one vectorised pass each way on the CPU backend.
+//! - [`bench`]: training-step throughput and cross-device parity (`sparsh bench-train`).
 //! - [`device`]: the CPU, wgpu or CUDA devices a run computes on (data-parallel over several).
 
+pub mod bench;
 pub mod data;
 pub mod device;
 pub mod dino;

@@ -6,14 +6,13 @@
 //! Without a wgpu adapter the wgpu tests are skipped with a note, unless SPARSH_REQUIRE_GPU=1
 //! (CI sets it), where they fail.
 
-use burn::module::{Module, ModuleVisitor, Param};
-use burn::optim::GradientsParams;
 use burn::prelude::*;
+use sparsh_ssl::bench::{OneStep, compare_steps, one_step, parameters};
 use sparsh_ssl::data::HostBatch;
 use sparsh_ssl::device::{DeviceKind, Devices};
 use sparsh_ssl::recipe::Recipe;
 use sparsh_ssl::rng::Rng;
-use sparsh_ssl::train::{Trainee, optimizer};
+use sparsh_ssl::train::Trainee;
 
 const OBJECTIVES: [(&str, &str); 4] = [
     (
@@ -76,125 +75,49 @@ fn wgpu() -> Option<Device> {
     }
 }
 
-/// Every float parameter of a module, in visiting order, read back to the host.
-fn weights<M: Module>(m: &M) -> Vec<Vec<f32>> {
-    struct Collect(Vec<Vec<f32>>);
-    impl ModuleVisitor for Collect {
-        fn visit_float<const D: usize>(&mut self, p: &Param<Tensor<D>>) {
-            self.0.push(
-                p.val()
-                    .into_data()
-                    .convert::<f32>()
-                    .try_to_vec::<f32>()
-                    .unwrap(),
-            );
-        }
-    }
-    let mut c = Collect(Vec::new());
-    m.visit(&mut c);
-    c.0
-}
-
-/// Every parameter's gradient (`None` where it has none), read back to the host.
-fn gradients<M: Module>(m: &M, grads: &GradientsParams) -> Vec<Option<Vec<f32>>> {
-    struct Collect<'a>(&'a GradientsParams, Vec<Option<Vec<f32>>>);
-    impl ModuleVisitor for Collect<'_> {
-        fn visit_float<const D: usize>(&mut self, p: &Param<Tensor<D>>) {
-            let g = self.0.get::<D>(p.id);
-            self.1
-                .push(g.map(|g| g.into_data().convert::<f32>().try_to_vec::<f32>().unwrap()));
-        }
-    }
-    let mut c = Collect(grads, Vec::new());
-    m.visit(&mut c);
-    c.1
-}
-
-/// Largest |a − b| over all parameters relative to the largest |a|, per parameter.
-fn worst_relative(a: &[Vec<f32>], b: &[Vec<f32>]) -> f32 {
-    assert_eq!(a.len(), b.len(), "parameter count");
-    a.iter()
-        .zip(b)
-        .map(|(a, b)| {
-            assert_eq!(a.len(), b.len(), "parameter size");
-            let scale = a.iter().fold(1e-12f32, |m, v| m.max(v.abs()));
-            a.iter().zip(b).fold(0f32, |m, (u, v)| m.max((u - v).abs())) / scale
-        })
-        .fold(0f32, f32::max)
-}
-
-/// Largest |a − b| of the updated weights, and how many components were left out of it: those
-/// whose gradient is within twice its parameter's largest gradient difference of zero. Adam's
-/// first step moves every weight by about lr · sign(g) whatever |g|, so there the sign, and the
-/// weight's move, are not determined by the arithmetic; those components are only checked to
-/// move by at most the step (`lr`, with 10 % for the weight decay). Parameters without a
-/// gradient (EMA teachers) are all compared.
-fn worst_weight(a: &[Vec<f32>], b: &[Vec<f32>], grads: [&[Vec<f32>]; 2], lr: f32) -> (f32, usize) {
-    let mut worst = 0f32;
-    let mut undetermined = 0;
-    for (((a, b), ga), gb) in a.iter().zip(b).zip(grads[0]).zip(grads[1]) {
-        let spread = ga
-            .iter()
-            .zip(gb)
-            .fold(0f32, |m, (u, v)| m.max((u - v).abs()));
-        for (k, (u, v)) in a.iter().zip(b).enumerate() {
-            let d = (u - v).abs();
-            if ga.get(k).is_some_and(|g| g.abs() <= 2.0 * spread) {
-                undetermined += 1;
-                assert!(
-                    d <= 2.2 * lr,
-                    "a weight moved by {d} in one step of lr {lr}"
-                );
-            } else {
-                worst = worst.max(d);
-            }
-        }
-    }
-    (worst, undetermined)
-}
-
-fn some(g: Vec<Option<Vec<f32>>>) -> Vec<Vec<f32>> {
-    g.into_iter().map(Option::unwrap_or_default).collect()
-}
-
-/// Loss, gradients and updated weights of one step of `recipe` on `devices` (autodiff), the model
-/// living on the first.
-fn one_step(recipe: &Recipe, devices: &[Device]) -> (f64, Vec<Vec<f32>>, Vec<Vec<f32>>) {
-    let main = &devices[0];
-    let model = Trainee::init(recipe, main).unwrap();
-    let b = batch(recipe);
-    let x = Tensor::<1>::from_floats(b.values.as_slice(), main).reshape(b.shape);
-    let (grads, _, _) = model.gradients(recipe, x, b.step, devices);
-    let grads = some(gradients(&model, &grads));
-    let mut optim = optimizer(recipe);
-    let (after, loss) = model.train_step(recipe, &mut optim, &b, devices);
-    (loss, grads, weights(&after))
+/// One step of `r` on the test batch on `devices`.
+fn step(r: &Recipe, devices: &[Device]) -> OneStep {
+    one_step(r, &batch(r), devices).unwrap()
 }
 
 /// The step's tolerances: losses to 1e-5 relative; each parameter's gradient to `grad_tol` of its
 /// largest component; updated weights to 2e-5 absolute (a fiftieth of the first AdamW step, lr
-/// 1e-3 moving every weight by about lr) wherever the gradient's sign is determined
-/// ([`worst_weight`]).
-fn assert_same_step(
-    name: &str,
-    a: &(f64, Vec<Vec<f32>>, Vec<Vec<f32>>),
-    b: &(f64, Vec<Vec<f32>>, Vec<Vec<f32>>),
-    grad_tol: f32,
-) {
-    let rel = (a.0 - b.0).abs() / a.0.abs().max(1e-12);
-    assert!(rel <= 1e-5, "{name}: loss {} vs {} ({rel:.1e})", a.0, b.0);
-    let g = worst_relative(&a.1, &b.1);
+/// 1e-3 moving every weight by about lr) wherever the gradient's sign is determined, and by at
+/// most the step (lr, with 10 % for the weight decay) where it is not (`sparsh_ssl::bench::StepParity`).
+fn assert_same_step(name: &str, a: &OneStep, b: &OneStep, grad_tol: f32) {
+    let p = compare_steps(a, b).unwrap();
     assert!(
-        g <= grad_tol,
-        "{name}: gradients differ by {g:.2e} of their scale"
+        p.loss_relative <= 1e-5,
+        "{name}: loss {} vs {} ({:.1e})",
+        a.loss,
+        b.loss,
+        p.loss_relative
     );
-    let (w, undetermined) = worst_weight(&a.2, &b.2, [&a.1, &b.1], 1e-3);
-    assert!(w <= 2e-5, "{name}: updated weights differ by up to {w:.2e}");
-    let total: usize = a.2.iter().map(Vec::len).sum();
+    assert!(
+        p.gradient_relative <= grad_tol,
+        "{name}: gradients differ by {:.2e} of their scale",
+        p.gradient_relative
+    );
+    assert!(
+        p.weight_abs <= 2e-5,
+        "{name}: updated weights differ by up to {:.2e}",
+        p.weight_abs
+    );
+    assert!(
+        p.undetermined_weight_abs <= 2.2e-3,
+        "{name}: a weight moved by {} in one step of lr 1e-3",
+        p.undetermined_weight_abs
+    );
     eprintln!(
-        "{name}: loss {:.6} vs {:.6} (rel {rel:.1e}), gradients {g:.1e} of scale, weights \
-         {w:.1e} ({undetermined} of {total} with a gradient's sign within rounding)",
-        a.0, b.0
+        "{name}: loss {:.6} vs {:.6} (rel {:.1e}), gradients {:.1e} of scale, weights {:.1e} \
+         ({} of {} with a gradient's sign within rounding)",
+        a.loss,
+        b.loss,
+        p.loss_relative,
+        p.gradient_relative,
+        p.weight_abs,
+        p.undetermined,
+        p.weights
     );
 }
 
@@ -206,8 +129,8 @@ fn a_model_starts_from_the_same_weights_on_every_device() {
     let cpu = Trainee::init(&r, &Device::flex().autodiff()).unwrap();
     let moved = Trainee::init(&r, &gpu.autodiff()).unwrap();
     assert_eq!(
-        weights(&cpu),
-        weights(&moved),
+        parameters(&cpu),
+        parameters(&moved),
         "drawn on the CPU, moved bit for bit"
     );
 }
@@ -217,8 +140,8 @@ fn one_step_on_wgpu_equals_the_cpu_step() {
     let Some(gpu) = wgpu() else { return };
     for (name, extra) in OBJECTIVES {
         let r = recipe(name, extra);
-        let cpu = one_step(&r, &[Device::flex().autodiff()]);
-        let on_gpu = one_step(&r, &[gpu.clone().autodiff()]);
+        let cpu = step(&r, &[Device::flex().autodiff()]);
+        let on_gpu = step(&r, &[gpu.clone().autodiff()]);
         assert_same_step(&format!("{name} wgpu vs cpu"), &cpu, &on_gpu, 1e-3);
     }
 }
@@ -233,11 +156,11 @@ fn a_data_parallel_step_equals_the_whole_batch_step() {
     let gpu = wgpu();
     for (name, extra) in OBJECTIVES.iter().filter(|(n, _)| *n != "dino") {
         let r = recipe(name, extra);
-        let whole = one_step(&r, std::slice::from_ref(&cpu));
-        let two_cpus = one_step(&r, &[cpu.clone(), cpu.clone()]);
+        let whole = step(&r, std::slice::from_ref(&cpu));
+        let two_cpus = step(&r, &[cpu.clone(), cpu.clone()]);
         assert_same_step(&format!("{name} 2 cpu devices"), &whole, &two_cpus, 1e-4);
         if let Some(gpu) = &gpu {
-            let mixed = one_step(&r, &[cpu.clone(), gpu.clone().autodiff()]);
+            let mixed = step(&r, &[cpu.clone(), gpu.clone().autodiff()]);
             assert_same_step(&format!("{name} cpu + wgpu"), &whole, &mixed, 1e-3);
         }
     }
