@@ -160,3 +160,32 @@ fn limits_prints_the_checked_limits() {
         "--tolerance: must be a relative force error in (0, 1), got 1.5",
     );
 }
+
+/// The quick start's scene, as shipped, gives ground truth its own checks accept: `generate`
+/// prints no validity warning and every frame's labels say `ok`, on the rung `solver = "auto"`
+/// chose, whose limits (`sparsh limits`) the deepest frame stays inside.
+#[test]
+fn the_quickstart_is_inside_its_rungs_validity() {
+    let tmp = tempfile::tempdir().unwrap();
+    let scene =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../scenes/quickstart.toml");
+    let ds = tmp.path().join("ds");
+    let out = generate(&scene, &ds, &["--quiet"]);
+    let err = stderr(&out);
+    assert!(out.status.success(), "{err}");
+    assert!(!err.contains("warning"), "{err}");
+    let labels = std::fs::read_to_string(ds.join("labels.jsonl")).unwrap();
+    let rows: Vec<serde_json::Value> = labels
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    assert_eq!(rows.len(), 120);
+    for row in &rows {
+        assert_eq!(row["validity"], "ok", "{row}");
+        assert_eq!(row["solver"], rows[0]["solver"], "{row}");
+    }
+    assert_ne!(
+        rows[0]["solver"], "halfspace",
+        "a 3 mm gel is no half-space"
+    );
+}

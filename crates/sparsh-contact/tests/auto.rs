@@ -131,30 +131,42 @@ fn auto_meets_its_tolerance_on_held_out_scenes_and_is_never_dearer() {
     }
 }
 
-/// The quickstart's press (a 6 mm-radius sphere 1 mm into a 3 mm gel, δ/h = 0.33) under
-/// `solver = "auto"`: the boundary elements' studied depth error misses 2 % there, so the
-/// finite elements are taken, and a shallow press of the same scene stays on a cheaper rung.
+/// The quickstart's press under its `solver = "auto"`: a 6 mm-radius sphere 0.85 mm into a 3 mm
+/// gel (δ/h = 0.28) gets the layered rung, whose studied depth limit is δ/h = 0.3 at 2 %; the
+/// same press 1 mm deep (δ/h = 0.33, where the boundary elements' studied depth error misses
+/// 2 %) gets the finite elements, and 0.1 mm deep a boundary-element rung.
 #[test]
-fn auto_takes_the_finite_elements_for_a_deep_press() {
+fn auto_takes_the_layer_for_the_quickstart_and_the_finite_elements_deeper() {
     let quickstart = std::fs::read_to_string(
         Path::new(env!("CARGO_MANIFEST_DIR")).join("../../scenes/quickstart.toml"),
     )
     .expect("quickstart scene");
-    let auto = quickstart
-        .replace("solver = \"halfspace\"", "solver = \"auto\"")
-        .replace("mechanics_stride = 2\n", "");
-    let scene = Scene::parse(Path::new("quickstart.toml"), auto.clone()).expect("scene");
-    let choice = scene.auto.expect("auto records its choice");
-    assert_eq!(scene.solver, sparsh_scene::SolverKind::Fem, "{choice:?}");
-    assert!((choice.depth_over_h - 1.0 / 3.0).abs() < 0.02, "{choice:?}");
-    let shallow = auto
-        .replace("[-1.0, 0.0, -1.0]", "[-1.0, 0.0, -0.1]")
-        .replace("[1.0, 0.0, -1.0]", "[1.0, 0.0, -0.1]");
-    let scene = Scene::parse(Path::new("shallow.toml"), shallow).expect("scene");
-    assert_ne!(
+    assert!(quickstart.contains("solver = \"auto\""));
+    let scene = Scene::parse(Path::new("quickstart.toml"), quickstart.clone()).expect("scene");
+    let choice = scene.auto.clone().expect("auto records its choice");
+    assert_eq!(
         scene.solver,
+        sparsh_scene::SolverKind::Layered,
+        "{choice:?}"
+    );
+    assert!(
+        (choice.depth_over_h - 0.85 / 3.0).abs() < 0.02,
+        "{choice:?}"
+    );
+    let pressed = |depth: &str| {
+        quickstart
+            .replace("[-1.0, 0.0, -0.85]", &format!("[-1.0, 0.0, -{depth}]"))
+            .replace("[1.0, 0.0, -0.85]", &format!("[1.0, 0.0, -{depth}]"))
+    };
+    let deep = Scene::parse(Path::new("deep.toml"), pressed("1.0")).expect("scene");
+    let choice = deep.auto.expect("auto records its choice");
+    assert_eq!(deep.solver, sparsh_scene::SolverKind::Fem, "{choice:?}");
+    assert!((choice.depth_over_h - 1.0 / 3.0).abs() < 0.02, "{choice:?}");
+    let shallow = Scene::parse(Path::new("shallow.toml"), pressed("0.1")).expect("scene");
+    assert_ne!(
+        shallow.solver,
         sparsh_scene::SolverKind::Fem,
         "{:?}",
-        scene.auto
+        shallow.auto
     );
 }
