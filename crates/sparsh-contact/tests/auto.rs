@@ -143,7 +143,7 @@ fn auto_takes_the_layer_for_the_quickstart_and_the_finite_elements_deeper() {
     .expect("quickstart scene");
     assert!(quickstart.contains("solver = \"auto\""));
     let scene = Scene::parse(Path::new("quickstart.toml"), quickstart.clone()).expect("scene");
-    let choice = scene.auto.clone().expect("auto records its choice");
+    let choice = scene.auto.expect("auto records its choice");
     assert_eq!(
         scene.solver,
         sparsh_scene::SolverKind::Layered,
