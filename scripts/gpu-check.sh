@@ -26,7 +26,8 @@
 #
 # GPU_CHECK_QUICK=1 shrinks every size (tiny recipes, small inputs, a few steps): the whole script
 # end to end on a software adapter (Mesa's lavapipe) in a few minutes, as CI's machine can. The
-# binary is .gpu/sparsh.xz when prepared, else target/release/sparsh.
+# binary is $GPU_CHECK_SPARSH if set, else .gpu/sparsh.xz when prepared, else
+# target/release/sparsh; GPU_CHECK_WORK (default /tmp/gpu-check) holds the intermediate files.
 set -uo pipefail
 
 here=$(cd "$(dirname "$0")/.." && pwd)
@@ -92,7 +93,9 @@ stage() {
 }
 
 # --- 1. environment -------------------------------------------------------------------------
-if [ -f .gpu/sparsh.xz ]; then
+if [ -n "${GPU_CHECK_SPARSH:-}" ]; then
+    sparsh=$GPU_CHECK_SPARSH
+elif [ -f .gpu/sparsh.xz ]; then
     xz -dc .gpu/sparsh.xz >"$work/sparsh" && chmod +x "$work/sparsh"
     sparsh=$work/sparsh
 else

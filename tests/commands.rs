@@ -609,3 +609,64 @@ fn bench_train_times_steps_and_compares_devices() {
         &missing,
     );
 }
+
+/// `scripts/gpu-check.sh run` at its toy sizes (`GPU_CHECK_QUICK=1`) on this machine's wgpu
+/// adapter (lavapipe here), with the binary under test: every stage that has what it needs exits
+/// 0, the rendered frame on the GPU equals the CPU's to one level, the four objectives' steps
+/// agree with the CPU's to the device tests' tolerances, and the probe ran. Skips without an
+/// adapter (unless SPARSH_REQUIRE_GPU=1) or without NumPy and Pillow (unless
+/// SPARSH_REQUIRE_PYTHON=1).
+#[test]
+fn the_gpu_check_runs_end_to_end_at_toy_sizes() {
+    if !common::wgpu_or_skip() {
+        return;
+    }
+    let python = std::process::Command::new("python3")
+        .args(["-c", "import numpy, PIL"])
+        .status()
+        .is_ok_and(|s| s.success());
+    if !python {
+        assert!(
+            std::env::var("SPARSH_REQUIRE_PYTHON").is_err(),
+            "SPARSH_REQUIRE_PYTHON is set and python3 cannot import numpy and PIL"
+        );
+        eprintln!("skipped: python3 cannot import numpy and PIL");
+        return;
+    }
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("out");
+    let run = std::process::Command::new("bash")
+        .arg(checkout("scripts/gpu-check.sh"))
+        .args(["run", out.to_str().unwrap()])
+        .env("GPU_CHECK_QUICK", "1")
+        .env("GPU_CHECK_SPARSH", env!("CARGO_BIN_EXE_sparsh"))
+        .env("GPU_CHECK_WORK", tmp.path().join("work"))
+        .output()
+        .expect("bash runs");
+    assert!(run.status.success(), "{}", stderr(&run));
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("gpu-check.json")).unwrap())
+            .unwrap();
+    for stage in report["stages"].as_array().unwrap() {
+        let name = stage["stage"].as_str().unwrap();
+        // nvidia-smi and PyTorch are the GPU machine's; elsewhere they may be missing
+        if name == "nvidia_smi" || name.starts_with("torch") {
+            continue;
+        }
+        assert_eq!(stage["exit"], "0", "{stage}");
+    }
+    let render = &report["render_parity"];
+    assert!(
+        render["max_abs_levels"].as_f64().unwrap() <= 1.0,
+        "{render}"
+    );
+    let parity = report["step_parity"]["parity"].as_array().unwrap();
+    assert_eq!(parity.len(), 4, "the four objectives");
+    for p in parity {
+        assert!(p["loss_relative"].as_f64().unwrap() <= 1e-5, "{p}");
+        assert!(p["weight_abs"].as_f64().unwrap() <= 2e-5, "{p}");
+    }
+    let probe = report["probe"].as_str().unwrap();
+    assert!(probe.contains("random inits"), "{probe}");
+    assert!(out.join("gpu-check.md").is_file() && out.join("gpu-check.log").is_file());
+}
