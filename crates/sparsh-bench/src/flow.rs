@@ -20,23 +20,63 @@
 /// 2.1 —, `iterations` 3, `poly_n` 5, `poly_sigma` 1.1).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct FarnebackParams {
-    /// Size ratio between successive pyramid levels, in (0, 1); anything else disables the
-    /// pyramid (one level).
+    /// Size ratio between successive pyramid levels, in (0, 1).
     pub pyramid_scale: f64,
-    /// Number of pyramid levels including the full-resolution image (1 = no pyramid, 0 acts as
-    /// 1). Levels whose shorter side would fall below 16 px are dropped.
+    /// Number of pyramid levels including the full-resolution image, at least 1 (1 = no
+    /// pyramid). Levels whose shorter side would fall below 16 px are dropped.
     pub levels: usize,
     /// Standard deviation (px) of the Gaussian window w over which the displacement constraints
-    /// are pooled; the window spans ±⌈3σ⌉ px.
+    /// are pooled, positive and finite; the window spans ±⌈3σ⌉ px.
     pub window_sigma: f64,
     /// Displacement updates per pyramid level (0 leaves the flow at zero).
     pub iterations: usize,
-    /// Side (px) of the square neighbourhood of the polynomial fit: a poly_n × poly_n window,
-    /// radius ⌊poly_n/2⌋ (at least 1). OpenCV's implementation uses a wider (2·poly_n+1) support.
+    /// Side (px) of the square neighbourhood of the polynomial fit, at least 3: a poly_n × poly_n
+    /// window, radius ⌊poly_n/2⌋. OpenCV's implementation uses a wider (2·poly_n+1) support.
     pub poly_n: usize,
-    /// Standard deviation (px) of the Gaussian applicability of the polynomial fit (values below
-    /// 0.25 px are raised to 0.25 px; NaN falls back to the default 1.1).
+    /// Standard deviation (px) of the Gaussian applicability of the polynomial fit, positive and
+    /// finite (values below 0.25 px are raised to 0.25 px).
     pub poly_sigma: f64,
+}
+
+/// A [`FarnebackParams`] field outside its range: which one, and what is wrong.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("Farnebäck flow: {field} {msg}")]
+pub struct InvalidParameter {
+    /// The field.
+    pub field: &'static str,
+    /// What is wrong with its value.
+    pub msg: String,
+}
+
+impl FarnebackParams {
+    /// Every field inside its documented range, or the first that is not.
+    pub fn validate(&self) -> Result<(), InvalidParameter> {
+        let bad = |field, msg: String| Err(InvalidParameter { field, msg });
+        if !(self.pyramid_scale > 0.0 && self.pyramid_scale < 1.0) {
+            return bad(
+                "pyramid_scale",
+                format!("{} is not in (0, 1)", self.pyramid_scale),
+            );
+        }
+        if self.levels == 0 {
+            return bad("levels", "0: at least 1 (the full-resolution image)".into());
+        }
+        for (field, value) in [
+            ("window_sigma", self.window_sigma),
+            ("poly_sigma", self.poly_sigma),
+        ] {
+            if !(value.is_finite() && value > 0.0) {
+                return bad(
+                    field,
+                    format!("{value} is not a positive finite number of px"),
+                );
+            }
+        }
+        if self.poly_n < 3 {
+            return bad("poly_n", format!("{}: at least 3 px", self.poly_n));
+        }
+        Ok(())
+    }
 }
 
 impl Default for FarnebackParams {
@@ -66,15 +106,17 @@ const MIN_POLY_SIGMA_PX: f64 = 0.25;
 /// the displacement d(x) = [dx (columns), dy (rows)] in pixels with prev(x) ≈ next(x + d(x)).
 ///
 /// The returned vector is row-major like the inputs. Non-finite input values are read as 0 and
-/// every returned component is finite. Panics only if a slice length differs from
-/// `height * width` (callers own the shapes); an empty image gives an empty flow.
+/// every returned component is finite. Parameters outside their ranges are refused
+/// ([`FarnebackParams::validate`]). Panics only if a slice length differs from `height * width`
+/// (callers own the shapes); an empty image gives an empty flow.
 pub fn farneback_flow(
     prev: &[f32],
     next: &[f32],
     height: usize,
     width: usize,
     params: &FarnebackParams,
-) -> Vec<[f32; 2]> {
+) -> Result<Vec<[f32; 2]>, InvalidParameter> {
+    params.validate()?;
     let pixel_count = height * width;
     assert_eq!(
         prev.len(),
@@ -87,17 +129,13 @@ pub fn farneback_flow(
         "next must hold height * width pixels"
     );
     if pixel_count == 0 {
-        return Vec::new();
+        return Ok(Vec::new());
     }
     let prev = Image::from_f32(prev, height, width);
     let next = Image::from_f32(next, height, width);
 
-    let poly_radius = (params.poly_n / 2).max(1);
-    let poly_sigma = if params.poly_sigma.is_nan() {
-        FarnebackParams::default().poly_sigma
-    } else {
-        params.poly_sigma.max(MIN_POLY_SIGMA_PX)
-    };
+    let poly_radius = params.poly_n / 2;
+    let poly_sigma = params.poly_sigma.max(MIN_POLY_SIGMA_PX);
     let applicability = PolyApplicability::new(poly_sigma, poly_radius);
     let window = gaussian_kernel(params.window_sigma, height.max(width));
 
@@ -120,10 +158,11 @@ pub fn farneback_flow(
             solver.update(&mut flow);
         }
     }
-    flow.vectors
+    Ok(flow
+        .vectors
         .iter()
         .map(|&[dx_px, dy_px]| [finite_or_zero(dx_px), finite_or_zero(dy_px)])
-        .collect()
+        .collect())
 }
 
 /// The scale factors of the pyramid levels, coarsest first, ending with 1 (full resolution);
@@ -131,14 +170,12 @@ pub fn farneback_flow(
 fn pyramid_scales(height: usize, width: usize, params: &FarnebackParams) -> Vec<f64> {
     let ratio = params.pyramid_scale;
     let mut scales = vec![1.0];
-    if ratio > 0.0 && ratio < 1.0 {
-        while scales.len() < params.levels {
-            let scale = ratio * scales[scales.len() - 1];
-            if scaled_len(height, scale).min(scaled_len(width, scale)) < MIN_LEVEL_SIDE_PX {
-                break;
-            }
-            scales.push(scale);
+    while scales.len() < params.levels {
+        let scale = ratio * scales[scales.len() - 1];
+        if scaled_len(height, scale).min(scaled_len(width, scale)) < MIN_LEVEL_SIDE_PX {
+            break;
         }
+        scales.push(scale);
     }
     scales.reverse();
     scales
@@ -644,7 +681,8 @@ mod tests {
         let texture = Texture::new(7);
         let prev = texture.render(height, width, |x, y| (x, y));
         let next = texture.render(height, width, |x, y| (x - dx_px, y - dy_px));
-        let flow = farneback_flow(&prev, &next, height, width, &FarnebackParams::default());
+        let flow =
+            farneback_flow(&prev, &next, height, width, &FarnebackParams::default()).unwrap();
         interior(&flow, height, width, 10)
     }
 
@@ -683,7 +721,8 @@ mod tests {
     fn identical_images_give_zero_flow() {
         let (height, width) = (72, 96);
         let image = Texture::new(1).render(height, width, |x, y| (x, y));
-        let flow = farneback_flow(&image, &image, height, width, &FarnebackParams::default());
+        let flow =
+            farneback_flow(&image, &image, height, width, &FarnebackParams::default()).unwrap();
         assert_eq!(flow.len(), height * width);
         for [dx_px, dy_px] in flow {
             assert!(dx_px.hypot(dy_px) < 1e-3, "({dx_px}, {dy_px})");
@@ -727,7 +766,8 @@ mod tests {
         let next = texture.render(height, width, |x, y| {
             (cx + (x - cx) / zoom, cy + (y - cy) / zoom)
         });
-        let flow = farneback_flow(&prev, &next, height, width, &FarnebackParams::default());
+        let flow =
+            farneback_flow(&prev, &next, height, width, &FarnebackParams::default()).unwrap();
         // True flow: d(x) = (zoom − 1)(x − c). Regress the flow on x − c over the interior.
         let margin = 10;
         let (mut flow_dot_radial, mut radial_squared) = (0.0, 0.0);
@@ -754,7 +794,7 @@ mod tests {
         let prev = vec![0.4; height * width];
         let next = vec![0.6; height * width];
         for [dx_px, dy_px] in
-            farneback_flow(&prev, &next, height, width, &FarnebackParams::default())
+            farneback_flow(&prev, &next, height, width, &FarnebackParams::default()).unwrap()
         {
             assert!(dx_px.is_finite() && dy_px.is_finite());
             assert!(dx_px.hypot(dy_px) < 1e-3, "({dx_px}, {dy_px})");
@@ -762,10 +802,10 @@ mod tests {
     }
 
     #[test]
-    fn degenerate_shapes_content_and_params_stay_finite() {
+    fn degenerate_shapes_and_content_stay_finite() {
         let params = FarnebackParams::default();
-        assert!(farneback_flow(&[], &[], 0, 5, &params).is_empty());
-        let [[dx_px, dy_px]] = farneback_flow(&[0.3], &[0.7], 1, 1, &params)[..] else {
+        assert!(farneback_flow(&[], &[], 0, 5, &params).unwrap().is_empty());
+        let [[dx_px, dy_px]] = farneback_flow(&[0.3], &[0.7], 1, 1, &params).unwrap()[..] else {
             panic!("one pixel in, one vector out");
         };
         assert!(dx_px.hypot(dy_px) < 1e-3, "({dx_px}, {dy_px})");
@@ -775,29 +815,93 @@ mod tests {
         let next = texture.render(height, width, |x, y| (x - 1.0, y));
         prev[7] = f32::NAN;
         prev[8] = f32::INFINITY;
-        let odd_params = [
-            params,
-            FarnebackParams {
-                pyramid_scale: f64::NAN,
-                levels: 0,
-                window_sigma: -1.0,
-                iterations: 5,
-                poly_n: 0,
-                poly_sigma: 0.0,
-            },
-            FarnebackParams {
-                pyramid_scale: 2.0,
-                levels: 50,
-                window_sigma: f64::INFINITY,
-                iterations: 1,
-                poly_n: 40,
-                poly_sigma: f64::INFINITY,
-            },
-        ];
-        for params in odd_params {
-            let flow = farneback_flow(&prev, &next, height, width, &params);
+        let wide = FarnebackParams {
+            levels: 50,
+            iterations: 1,
+            poly_n: 40,
+            poly_sigma: 0.01,
+            ..params
+        };
+        for params in [params, wide] {
+            let flow = farneback_flow(&prev, &next, height, width, &params).unwrap();
             assert_eq!(flow.len(), height * width);
             assert!(flow.iter().flatten().all(|v| v.is_finite()), "{params:?}");
         }
+    }
+
+    #[test]
+    fn parameters_outside_their_ranges_are_refused_by_name() {
+        let ok = FarnebackParams::default();
+        let image = vec![0.5f32; 16 * 16];
+        let cases = [
+            (
+                FarnebackParams {
+                    pyramid_scale: f64::NAN,
+                    ..ok
+                },
+                "pyramid_scale",
+            ),
+            (
+                FarnebackParams {
+                    pyramid_scale: 1.0,
+                    ..ok
+                },
+                "pyramid_scale",
+            ),
+            (
+                FarnebackParams {
+                    pyramid_scale: -0.5,
+                    ..ok
+                },
+                "pyramid_scale",
+            ),
+            (FarnebackParams { levels: 0, ..ok }, "levels"),
+            (
+                FarnebackParams {
+                    window_sigma: -1.0,
+                    ..ok
+                },
+                "window_sigma",
+            ),
+            (
+                FarnebackParams {
+                    window_sigma: f64::INFINITY,
+                    ..ok
+                },
+                "window_sigma",
+            ),
+            (
+                FarnebackParams {
+                    window_sigma: f64::NAN,
+                    ..ok
+                },
+                "window_sigma",
+            ),
+            (
+                FarnebackParams {
+                    poly_sigma: 0.0,
+                    ..ok
+                },
+                "poly_sigma",
+            ),
+            (
+                FarnebackParams {
+                    poly_sigma: f64::NAN,
+                    ..ok
+                },
+                "poly_sigma",
+            ),
+            (FarnebackParams { poly_n: 2, ..ok }, "poly_n"),
+        ];
+        for (params, field) in cases {
+            let err = farneback_flow(&image, &image, 16, 16, &params).unwrap_err();
+            assert_eq!(err.field, field, "{params:?}: {err}");
+            assert!(
+                err.to_string()
+                    .starts_with(&format!("Farnebäck flow: {field} ")),
+                "{err}"
+            );
+        }
+        assert!(farneback_flow(&image, &image, 16, 16, &ok).is_ok());
     }
 }

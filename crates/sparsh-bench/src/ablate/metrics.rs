@@ -189,4 +189,68 @@ mod tests {
         assert_eq!(narrow.within_5px_10pct, 1.0);
         assert!((wide.within_5px_10pct - 0.2).abs() < 1e-12);
     }
+
+    /// Ten predictions of two seeds against circles of radius 20 px, every statistic worked out
+    /// by hand: the medians and 90th percentiles interpolate linearly between order statistics
+    /// (numpy's default), and a prediction exactly 3 px and 5 % off counts as within 3 px and
+    /// 5 % (the bounds are inclusive).
+    #[test]
+    fn statistics_of_hand_checked_predictions() {
+        let truth = circle(100.0, 50.0, 20.0);
+        // (centre offset along x, predicted radius): centres 0, 1, 3, 3, 4 and 6, 2, 8, 0.5, 3 px
+        // off; radii 0, 0.5, 1, 1.5, 2 and 1, 0, 3, 2.5, 1 px off (0, 2.5, 5, 7.5, 10 and 5, 0,
+        // 15, 12.5, 5 % of 20 px)
+        let seeds = [
+            [
+                (0.0, 20.0),
+                (1.0, 20.5),
+                (3.0, 21.0),
+                (3.0, 18.5),
+                (4.0, 22.0),
+            ],
+            [
+                (6.0, 21.0),
+                (2.0, 20.0),
+                (8.0, 23.0),
+                (0.5, 17.5),
+                (3.0, 19.0),
+            ],
+        ];
+        let errors: Vec<Vec<FrameError>> = seeds
+            .iter()
+            .map(|frames| {
+                frames
+                    .iter()
+                    .map(|&(dx, r)| FrameError::of(circle(100.0 + dx, 50.0, r), truth))
+                    .collect()
+            })
+            .collect();
+        let s = score(&errors, 100, 3);
+        // centres sorted: 0, 0.5, 1, 2, 3, 3, 3, 4, 6, 8 → median (3 + 3)/2 = 3;
+        // p90 at rank 0.9 · 9 = 8.1: 6 + 0.1 · (8 − 6) = 6.2
+        assert_eq!(s.centre_median_px, 3.0);
+        assert!((s.centre_p90_px - 6.2).abs() < 1e-12, "{}", s.centre_p90_px);
+        // radii (px) sorted: 0, 0, 0.5, 1, 1, 1, 1.5, 2, 2.5, 3 → median 1; p90 2.5 + 0.1 · 0.5
+        assert_eq!(s.radius_median_px, 1.0);
+        assert!(
+            (s.radius_p90_px - 2.55).abs() < 1e-12,
+            "{}",
+            s.radius_p90_px
+        );
+        assert_eq!(s.radius_median_pct, 5.0);
+        assert!(
+            (s.radius_p90_pct - 12.75).abs() < 1e-12,
+            "{}",
+            s.radius_p90_pct
+        );
+        // within 3 px and 5 %: (0, 0 %), (1, 2.5 %), (3, 5 %) on both bounds, (2, 0 %), (3, 5 %)
+        // → 5 of 10; within 5 px and 10 %: those and (3, 7.5 %), (4, 10 %) → 7 of 10 ((0.5,
+        // 12.5 %) and (6, 5 %) stay out)
+        assert_eq!(s.within_3px_5pct, 0.5);
+        assert_eq!(s.within_5px_10pct, 0.7);
+        // the intervals hold the medians and lie within the data's range
+        assert!(s.centre_median_ci[0] <= 3.0 && 3.0 <= s.centre_median_ci[1]);
+        assert!(s.centre_median_ci[0] >= 0.0 && s.centre_median_ci[1] <= 8.0);
+        assert!(s.radius_median_pct_ci[0] <= 5.0 && 5.0 <= s.radius_median_pct_ci[1]);
+    }
 }

@@ -704,8 +704,9 @@ pub fn eval_run(
         .map(|&p| {
             let (now, before) = pairs.frames(p);
             farneback_flow(&gray(before, n), &gray(now, n), h, w, &params)
+                .map_err(|e| Error::file(run, e))
         })
-        .collect();
+        .collect::<Result<_, _>>()?;
     let zero_flow = vec![vec![[0.0f32; 2]; n]; pairs.test.len()];
     methods.push(MethodScores {
         name: "zero flow".into(),
