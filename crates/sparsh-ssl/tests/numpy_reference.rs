@@ -1,5 +1,6 @@
 //! Parity of the encoder's forward pass (burn's graph and the host pass of `sparsh embed`) with an
-//! independent NumPy ViT (`tests/numpy_vit.py`), weights passed through safetensors under the
+//! independent NumPy ViT (`tests/numpy_vit.py`) and with the PyTorch module of
+//! `scripts/sparsh_torch.py` (when torch imports), weights passed through safetensors under the
 //! official key names. Skips, saying so, when
 //! `python3` with numpy is unavailable (`pip install numpy`), unless `SPARSH_REQUIRE_PYTHON` is
 //! set, when it fails instead.
@@ -156,6 +157,58 @@ fn check(cfg: VitConfig, seed: u64) {
         pos_dev < 1e-5,
         "position embedding differs from the formula by {pos_dev}"
     );
+
+    // the same weights in PyTorch, in the official layout (scripts/sparsh_torch.py)
+    if torch_ready() {
+        let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../scripts/sparsh_torch.py");
+        let out = std::process::Command::new("python3")
+            .arg(&script)
+            .args([&file, &input_file])
+            .args(["--heads", heads.as_str()])
+            .env("PYTHONDONTWRITEBYTECODE", "1")
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "sparsh_torch.py: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let torch: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+        let values: Vec<f64> = torch["values"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v.as_f64().unwrap())
+            .collect();
+        assert_eq!(torch["shape"], reference["shape"]);
+        let torch_err = ours
+            .iter()
+            .zip(&values)
+            .fold(0.0f64, |m, (a, b)| m.max((*a as f64 - b).abs()));
+        eprintln!("PyTorch: max abs difference {torch_err:.3e}");
+        assert!(
+            torch_err / scale <= 1e-4,
+            "PyTorch: relative error {:.3e}",
+            torch_err / scale
+        );
+    }
+}
+
+/// Whether `python3` imports torch; without it the PyTorch comparison is skipped with a note,
+/// unless SPARSH_REQUIRE_TORCH is set, when it fails instead.
+fn torch_ready() -> bool {
+    let ok = std::process::Command::new("python3")
+        .args(["-c", "import torch"])
+        .output()
+        .is_ok_and(|o| o.status.success());
+    if !ok {
+        assert!(
+            std::env::var_os("SPARSH_REQUIRE_TORCH").is_none(),
+            "python3 cannot import torch and SPARSH_REQUIRE_TORCH is set"
+        );
+        eprintln!("skipping the PyTorch comparison: python3 cannot import torch");
+    }
+    ok
 }
 
 #[test]
