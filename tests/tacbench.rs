@@ -100,7 +100,7 @@ fn setup(dir: &Path) -> PathBuf {
 #[test]
 fn tacbench_runs_every_task_and_resumes() {
     let tmp = tempfile::tempdir().unwrap();
-    setup(tmp.path());
+    let data = setup(tmp.path());
     let tasks = ["force", "slip", "pose", "texture", "grasp"];
     let cfg = tmp.path().join("bench.toml");
     let pairs: Vec<(&str, &str)> = tasks.iter().map(|&t| (t, "data")).collect();
@@ -164,6 +164,44 @@ fn tacbench_runs_every_task_and_resumes() {
             assert!(v >= 0.0 && v.is_finite(), "{r:?}");
         }
     }
+    // the constant rows equal the learning-free predictor worked out from labels.jsonl: the
+    // recipe stacks frames t − 5 and t, and --quick doubles the frame stride of 2
+    let col = |name: &str| header.iter().position(|h| h == name).unwrap();
+    let reach = sparsh_ssl::recipe::Recipe::parse(RECIPE)
+        .unwrap()
+        .frame_offsets()
+        .into_iter()
+        .max()
+        .unwrap();
+    for task in ["force", "slip"] {
+        for budget in [1.0, 0.1] {
+            let (metrics, counts) = constant_by_hand(&data, task, budget, reach, 4);
+            let of: Vec<&csv::StringRecord> = rows
+                .iter()
+                .filter(|r| &r[0] == task && &r[2] == "constant" && r[3].parse() == Ok(budget))
+                .collect();
+            assert_eq!(of.len(), metrics.len(), "{task} {budget}: {of:?}");
+            for r in of {
+                let hand = metrics[&r[4]];
+                eprintln!(
+                    "{task} budget {budget} {}: by hand {hand}, results.csv {}",
+                    &r[4], &r[5]
+                );
+                assert!(
+                    (value(r) - hand).abs() <= 1e-9 * hand.abs().max(1.0),
+                    "{task} budget {budget} {}: results.csv {} but {hand} by hand",
+                    &r[4],
+                    &r[5]
+                );
+                let listed = ["train_sequences", "train_samples", "test_samples"]
+                    .map(|c| r[col(c)].parse::<usize>().unwrap());
+                assert_eq!(
+                    listed, counts,
+                    "{task} budget {budget}: sequences and samples"
+                );
+            }
+        }
+    }
     let md = std::fs::read_to_string(out_dir.join("results.md")).unwrap();
     for task in tasks {
         assert!(md.contains(&format!("**{task}**")), "{md}");
@@ -198,6 +236,139 @@ fn tacbench_runs_every_task_and_resumes() {
     let other = sparsh_bench::run::random_encoder(&recipe, 6).unwrap();
     sparsh_ssl::weights::save_encoder(&other, &tmp.path().join("weights.safetensors")).unwrap();
     assert_user_error(&sparsh(&resumed), "weights file");
+}
+
+/// The `constant` rows of the `force` or `slip` task at `budget`, worked out from
+/// `data/labels.jsonl` without the library: metric → value, and the training sequences,
+/// training samples and test samples. It re-derives
+/// - the samples (`tasks::extract`): frames t ≥ `reach` of each sequence, every `stride`-th;
+///   slip leaves out frames without contact;
+/// - the splits (`run::TaskRun::new`): the sequences the data mark `test` are held out; of the
+///   other sequences with samples, in order, every fifth from the fifth is validation;
+/// - the budget (`run::TaskRun::budget_sequences`): m = round(budget · n) of the n training
+///   sequences (at least one), the (i n / m)-th for i < m;
+/// - the predictor (`report::constant_predictions`): the mean force of the budget's samples,
+///   the majority cone label and stick / partial / gross state (a tie to the lower class);
+/// - the metrics on the test samples (`tasks::score`): RMSE (mN) over the three axes and per
+///   axis; F1 of the slip class (0 without true positives), and balanced accuracies as the
+///   mean recall over the classes the test samples hold.
+fn constant_by_hand(
+    data: &Path,
+    task: &str,
+    budget: f64,
+    reach: usize,
+    stride: usize,
+) -> (std::collections::BTreeMap<String, f64>, [usize; 3]) {
+    use std::collections::BTreeMap;
+    /// One sample: its sequence, whether that is held out, force (N), cone label, and state
+    /// (0 stick, 1 partial, 2 gross).
+    struct Sample {
+        seq: usize,
+        test: bool,
+        force: [f64; 3],
+        cone: bool,
+        state: usize,
+    }
+    let text = std::fs::read_to_string(data.join("labels.jsonl")).unwrap();
+    let mut by_seq: BTreeMap<u64, Vec<serde_json::Value>> = BTreeMap::new();
+    for line in text.lines().filter(|l| !l.trim().is_empty()) {
+        let row: serde_json::Value = serde_json::from_str(line).unwrap();
+        by_seq
+            .entry(row["sequence"].as_u64().unwrap())
+            .or_default()
+            .push(row);
+    }
+    // --quick keeps every sequence of a dataset of at most 20
+    assert!(by_seq.len() <= 20, "{} sequences", by_seq.len());
+    let mut samples = Vec::new();
+    for (s, frames) in by_seq.values_mut().enumerate() {
+        frames.sort_by_key(|f| f["frame_in_sequence"].as_u64().unwrap());
+        let test = frames[0]["split"] == "test";
+        for f in frames.iter().skip(reach).step_by(stride) {
+            let force: Vec<f64> = f["force_n"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|v| v.as_f64().unwrap())
+                .collect();
+            let state = match f["slip_state"].as_str().unwrap() {
+                "no_contact" if task == "slip" => continue,
+                "stick" | "no_contact" => 0,
+                "partial" => 1,
+                "gross" => 2,
+                other => panic!("slip_state {other}"),
+            };
+            samples.push(Sample {
+                seq: s,
+                test,
+                force: [force[0], force[1], force[2]],
+                cone: f["slip_cone"].as_bool().unwrap(),
+                state,
+            });
+        }
+    }
+    let mut seqs: Vec<(usize, bool)> = samples.iter().map(|x| (x.seq, x.test)).collect();
+    seqs.dedup();
+    assert!(
+        seqs.iter().any(|x| x.1) && seqs.iter().any(|x| !x.1),
+        "both splits"
+    );
+    let rest: Vec<usize> = seqs.iter().filter(|x| !x.1).map(|x| x.0).collect();
+    let train: Vec<usize> = rest
+        .iter()
+        .enumerate()
+        .filter(|(k, _)| k % 5 != 4)
+        .map(|x| *x.1)
+        .collect();
+    let n = train.len();
+    let m = ((budget * n as f64).round() as usize).clamp(1, n);
+    let picked: Vec<usize> = (0..m).map(|i| train[i * n / m]).collect();
+    let fit: Vec<&Sample> = samples.iter().filter(|x| picked.contains(&x.seq)).collect();
+    let test: Vec<&Sample> = samples.iter().filter(|x| x.test).collect();
+    let mut out = BTreeMap::new();
+    if task == "force" {
+        let mean: Vec<f64> = (0..3)
+            .map(|k| fit.iter().map(|x| x.force[k]).sum::<f64>() / fit.len() as f64)
+            .collect();
+        let se: Vec<f64> = (0..3)
+            .map(|k| test.iter().map(|x| (x.force[k] - mean[k]).powi(2)).sum())
+            .collect();
+        let rmse = |se: f64, axes: usize| 1000.0 * (se / (axes * test.len()) as f64).sqrt();
+        out.insert("rmse_mn".into(), rmse(se.iter().sum(), 3));
+        for (k, axis) in ["x", "y", "z"].iter().enumerate() {
+            out.insert(format!("rmse_{axis}_mn"), rmse(se[k], 1));
+        }
+    } else {
+        // the majority class of `n` classes among the fitted samples, and the mean recall of
+        // the test samples' classes when every one is predicted as it
+        let majority = |class: &dyn Fn(&Sample) -> usize, n: usize| {
+            let mut counts = vec![0; n];
+            fit.iter().for_each(|x| counts[class(x)] += 1);
+            let best = (0..n).rev().max_by_key(|&c| counts[c]).unwrap();
+            let present: Vec<usize> = (0..n)
+                .filter(|&c| test.iter().any(|x| class(x) == c))
+                .collect();
+            let recall = if present.contains(&best) { 1.0 } else { 0.0 };
+            (best, recall / present.len() as f64)
+        };
+        let (cone, balanced) = majority(&|x| usize::from(x.cone), 2);
+        let (_, state_balanced) = majority(&|x| x.state, 3);
+        let positives = test.iter().filter(|x| x.cone).count() as f64;
+        let (tp, fp) = if cone == 1 {
+            (positives, test.len() as f64 - positives)
+        } else {
+            (0.0, 0.0)
+        };
+        let f1 = if tp > 0.0 {
+            2.0 * tp / (2.0 * tp + fp + (positives - tp))
+        } else {
+            0.0
+        };
+        out.insert("f1".into(), f1);
+        out.insert("balanced_accuracy".into(), balanced);
+        out.insert("state_balanced_accuracy".into(), state_balanced);
+    }
+    (out, [m, fit.len(), test.len()])
 }
 
 #[test]

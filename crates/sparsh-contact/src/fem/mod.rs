@@ -1206,12 +1206,17 @@ impl Fem {
                     xy = [x - u[0], y - u[1]];
                 }
                 let weights = st.surface_weights(xy[0], xy[1]);
+                // The stick/slip state of the nearest node that carries pressure (a cell at the
+                // contact's edge may be nearer a node outside it).
                 let nearest = weights
                     .iter()
-                    .fold(
-                        (0, -1.0),
-                        |best, &(n, w)| if w > best.1 { (n, w) } else { best },
-                    )
+                    .fold((None, -1.0), |best, &(n, w)| {
+                        if pressure[n] > 0.0 && w > best.1 {
+                            (Some(n), w)
+                        } else {
+                            best
+                        }
+                    })
                     .0;
                 let mut u = [0.0; 3];
                 let (mut p, mut q) = (0.0, [0.0; 2]);
@@ -1226,9 +1231,14 @@ impl Fem {
                 f.ux_mm[k] = u[0];
                 f.uy_mm[k] = u[1];
                 f.uz_mm[k] = u[2];
-                if pressure[nearest] > 0.0 {
+                // In contact where the nodes' own criterion, max(0, λ − ε g) > 0, holds at this
+                // point of the surface: the multiplier interpolated, the gap between the
+                // interpolated surface and the indenter taken here. The contact's edge falls
+                // inside an element, not at the nearest node.
+                let lambda: f64 = weights.iter().map(|&(n, w)| w * st.lambda[n]).sum();
+                if lambda - eps * deformed_gap(&u, xy, ind) > 0.0 {
                     f.contact[k] = true;
-                    f.slip[k] = slip[nearest];
+                    f.slip[k] = nearest.is_some_and(|n| slip[n]);
                     f.pressure_kpa[k] = p;
                     f.traction_x_kpa[k] = q[0];
                     f.traction_y_kpa[k] = q[1];
