@@ -361,6 +361,70 @@ mod tests {
         assert!(side.abs() < 1e-3 * e * eps, "{side}");
     }
 
+    /// Nodal forces of an element under F = diag(a, a, λ), summed over its face x = 1 and its
+    /// face z = 1 (unit faces: the nominal stresses P₁₁ and P₃₃).
+    fn face_stresses(m: &NeoHookean, a: f64, stretch: f64) -> (f64, f64) {
+        let b = Box8::new([1.0, 1.0, 1.0]);
+        let mut u = [[0.0; 3]; 8];
+        for (n, un) in u.iter_mut().enumerate() {
+            let x = [(n & 1) as f64, ((n >> 1) & 1) as f64, ((n >> 2) & 1) as f64];
+            *un = [(a - 1.0) * x[0], (a - 1.0) * x[1], (stretch - 1.0) * x[2]];
+        }
+        let st = evaluate(m, &b, &u, false).unwrap();
+        let side: f64 = [1, 3, 5, 7].iter().map(|n| st.gradient[n * 3]).sum();
+        let top: f64 = (4..8).map(|n| st.gradient[n * 3 + 2]).sum();
+        (side, top)
+    }
+
+    /// Uniaxial compression to λ = 0.6, homogeneous, against this energy's closed form written
+    /// out here: for F = diag(a, a, λ), J = a²λ, I₁ = 2a² + λ², the nominal stress is
+    /// P = μ J^(−2/3) (F − I₁/3 F⁻ᵀ) + κ (J − 1) J F⁻ᵀ; the lateral stretch a makes P₁₁ = 0
+    /// (found by bisection), and P₃₃ is then the axial stress. Nearly incompressible, it tends to
+    /// the incompressible neo-Hookean μ (λ − λ⁻²).
+    #[test]
+    fn large_strain_uniaxial_compression_follows_the_closed_form() {
+        let stretch = 0.6;
+        for nu in [0.45, 0.499, 0.4999] {
+            let m = NeoHookean::from_young(300.0, nu);
+            let (mu, kappa) = (m.shear_kpa, m.bulk_kpa);
+            let stress = |a: f64, k: usize| {
+                let f = [a, a, stretch];
+                let j = a * a * stretch;
+                let i1 = 2.0 * a * a + stretch * stretch;
+                mu * j.powf(-2.0 / 3.0) * (f[k] - i1 / (3.0 * f[k])) + kappa * (j - 1.0) * j / f[k]
+            };
+            // P₁₁ < 0 at a = 1 (compressed axially, the sides pull in), > 0 at a = 2
+            let (mut lo, mut hi) = (1.0, 2.0);
+            for _ in 0..200 {
+                let mid = 0.5 * (lo + hi);
+                if stress(mid, 0) < 0.0 {
+                    lo = mid;
+                } else {
+                    hi = mid;
+                }
+            }
+            let a = 0.5 * (lo + hi);
+            let axial = stress(a, 2);
+            let (side, top) = face_stresses(&m, a, stretch);
+            assert!(side.abs() < 1e-8 * axial.abs(), "ν {nu}: lateral {side}");
+            assert!(
+                (top - axial).abs() < 1e-9 * axial.abs(),
+                "ν {nu}: element {top} kPa, closed form {axial} kPa"
+            );
+            let incompressible = mu * (stretch - stretch.powi(-2));
+            let gap = (axial / incompressible - 1.0).abs();
+            let bound = [(0.45, 0.1), (0.499, 0.01), (0.4999, 0.001)]
+                .iter()
+                .find(|(n, _)| *n == nu)
+                .unwrap()
+                .1;
+            assert!(
+                gap < bound,
+                "ν {nu}: {axial} against μ(λ − λ⁻²) = {incompressible}"
+            );
+        }
+    }
+
     #[test]
     fn inversion_is_reported() {
         let m = material();
