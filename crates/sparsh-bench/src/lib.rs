@@ -1,35 +1,29 @@
 #![warn(missing_docs)]
-//! TacBench (Sparsh, CoRL 2024, §5): frozen tactile encoders read out by a small attentive
-//! probe on touch tasks, at shrinking label budgets, against baselines that learn nothing from
-//! pretraining — randomly initialised encoders of the same architecture (several draws), the
-//! probe on the raw input patches, and the same ViT trained end to end on the budget's labels.
+//! The learning benchmarks of Sparsh's simulated touch, one folder per benchmark, with the
+//! modules several of them share at the top level.
 //!
-//! - [`labels`]: per-frame labels of generated datasets and the official layouts, one type.
-//! - [`tasks`]: the five tasks (force, slip, pose, texture, grasp): samples, targets, heads,
-//!   losses and metrics.
-//! - [`official`]: the official TacBench pickles (force/slip, pose, textile).
-//! - [`config`]: the TOML run description.
-//! - [`probe`]: the probe trainer (frozen tokens or end to end), epoch chosen on validation.
-//! - [`stats`]: bootstrap intervals over test sequences, spread of random draws.
-//! - [`report`]: `results.csv`, the Markdown table and the label-budget charts.
-//! - [`run`]: the benchmark loop with resume.
+//! - [`tacbench`]: TacBench (Sparsh, CoRL 2024, §5) — frozen tactile encoders read out by a
+//!   small attentive probe on touch tasks at shrinking label budgets, against baselines that
+//!   learn nothing from pretraining: tasks, config, probe trainer, report and the loop with
+//!   resume.
+//! - [`official`]: the official TacBench pickles, one file per layout (force/slip, pose,
+//!   textile, grasp).
 //! - [`fields`]: T1A, the normal and shear field decoder scored against ground-truth fields,
-//!   with [`flow`] (Farnebäck optical flow, its classical baseline) and [`fieldfig`] (figures).
+//!   with Farnebäck optical flow (its classical baseline) and the figures.
 //! - [`ablate`]: the sim-to-real ablation — models trained on synthetic frames of simulator
 //!   variants, scored on real frames' contact circles.
+//!
+//! Shared:
+//!
+//! - [`labels`]: per-frame labels of generated datasets and the official layouts, one type.
+//! - [`stats`]: bootstrap intervals over test sequences, spread of random draws, quantiles.
 
 pub mod ablate;
-pub mod config;
-pub mod fieldfig;
 pub mod fields;
-pub mod flow;
 pub mod labels;
 pub mod official;
-pub mod probe;
-pub mod report;
-pub mod run;
 pub mod stats;
-pub mod tasks;
+pub mod tacbench;
 
 /// Errors of TacBench; each message names the file or field at fault.
 #[derive(Debug, thiserror::Error)]

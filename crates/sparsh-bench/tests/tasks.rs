@@ -2,7 +2,7 @@
 
 use burn::prelude::*;
 use sparsh_bench::labels::{FrameLabel, SequenceLabels, SlipState};
-use sparsh_bench::tasks::{
+use sparsh_bench::tacbench::tasks::{
     Head, Metric, POSE_EDGES_DEG, POSE_EDGES_MM, Sample, Target, TaskKind, bin_centre, bin_of,
     class_name, extract, grasp_frames, grasp_outcome, score,
 };

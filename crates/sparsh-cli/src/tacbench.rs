@@ -6,8 +6,8 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use sha2::{Digest, Sha256};
-use sparsh_bench::config::{BenchConfig, TaskConfig};
-use sparsh_bench::run::{RunOptions, run};
+use sparsh_bench::tacbench::config::{BenchConfig, TaskConfig};
+use sparsh_bench::tacbench::run::{RunOptions, run};
 use sparsh_ssl::device::Devices;
 
 use crate::dataset::{DeviceArg, generate};
@@ -24,7 +24,7 @@ pub fn tacbench(
 ) -> Result<()> {
     let cfg = BenchConfig::load(config)?;
     // the pretrained encoders load and fit their recipes before anything is written
-    sparsh_bench::run::encoders(&cfg, Some(0))?;
+    sparsh_bench::tacbench::run::encoders(&cfg, Some(0))?;
     let text = std::fs::read_to_string(config).with_context(|| config.display().to_string())?;
     // what the units depend on: the config, --quick, every recipe and weights file
     let mut inputs = serde_json::Map::new();
@@ -117,18 +117,21 @@ pub fn tacbench(
     };
     let draws = if quick { 200 } else { cfg.bootstrap };
     let mut report = |runs: &_, units: &[_]| {
-        let rows = sparsh_bench::report::rows(runs, units, &budgets, draws, cfg.seed);
-        sparsh_bench::report::write(out, &rows, &budgets)
+        let rows = sparsh_bench::tacbench::report::rows(runs, units, &budgets, draws, cfg.seed);
+        sparsh_bench::tacbench::report::write(out, &rows, &budgets)
     };
     let (runs, units) = run(&cfg, &opts, &mut ensure, &mut progress, &mut report)?;
-    let rows = sparsh_bench::report::rows(&runs, &units, &budgets, draws, cfg.seed);
+    let rows = sparsh_bench::tacbench::report::rows(&runs, &units, &budgets, draws, cfg.seed);
     println!(
         "tacbench: {} units ({done} new) in {:.0} s → {}",
         units.len(),
         start.elapsed().as_secs_f64(),
         out.join("results.csv").display()
     );
-    print!("{}", sparsh_bench::report::markdown(&rows, &budgets));
+    print!(
+        "{}",
+        sparsh_bench::tacbench::report::markdown(&rows, &budgets)
+    );
     Ok(())
 }
 

@@ -8,9 +8,13 @@
 //! - [`train`]: training on hooked tokens, self-supervised or supervised (the ceiling).
 //! - [`metrics`]: correlation, IoU, end-point and angular error per frame pair.
 //! - [`run`]: `sparsh fieldprobe train` and `eval`: decoders, references, tables, figures.
+//! - [`flow`]: Farnebäck dense optical flow, the classical shear baseline.
+//! - [`figures`]: normal colour map + shear quiver figures.
 
 pub mod data;
 pub mod dpt;
+pub mod figures;
+pub mod flow;
 pub mod geometry;
 pub mod loss;
 pub mod metrics;

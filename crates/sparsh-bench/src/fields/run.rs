@@ -25,6 +25,8 @@ use sparsh_ssl::vit::Vit;
 
 use super::data::{FramePairs, GroundTruth, Pair, PairTruth, marker_flow};
 use super::dpt::FieldDecoderConfig;
+use super::figures::{Panel, write_field_grid};
+use super::flow::{FarnebackParams, farneback_flow};
 use super::geometry::InputGeometry;
 use super::loss::LossWeights;
 use super::metrics::{METRICS, best_threshold, higher_is_better, score_pair};
@@ -33,10 +35,8 @@ use super::train::{
     encode_inputs, predict, train,
 };
 use crate::Error;
-use crate::fieldfig::{Panel, write_field_grid};
-use crate::flow::{FarnebackParams, farneback_flow};
-use crate::run::{random_encoder, write_atomic};
 use crate::stats::{Spread, bootstrap_interval, rank};
+use crate::tacbench::run::{random_encoder, write_atomic};
 
 /// `[decoder]` of a field-probe config.
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -138,7 +138,7 @@ fn thousand() -> usize {
 impl FieldProbeConfig {
     /// Reads and checks a config; every error names the file and the key.
     pub fn load(path: &Path) -> Result<Self, Error> {
-        let mut cfg: FieldProbeConfig = crate::config::read_toml(path)?;
+        let mut cfg: FieldProbeConfig = crate::tacbench::config::read_toml(path)?;
         if cfg.recipe.is_relative() {
             cfg.recipe = path.parent().unwrap_or(Path::new("")).join(&cfg.recipe);
         }

@@ -6,7 +6,7 @@ use burn::optim::{AdamWConfig, GradientsParams};
 use burn::prelude::*;
 use sparsh_ssl::rng::Rng;
 
-use crate::probe::RowStats;
+use crate::tacbench::probe::RowStats;
 use sparsh_ssl::device::seeded_module;
 use sparsh_ssl::vit::Vit;
 

@@ -13,10 +13,10 @@ use sparsh_ssl::recipe::Recipe;
 use sparsh_ssl::train::Trainee;
 use sparsh_ssl::vit::{Vit, VitConfig};
 
-use crate::config::BenchConfig;
+use super::config::BenchConfig;
+use super::probe::{Fit, FitOptions, Split, Tokens, fit_end_to_end, fit_frozen};
+use super::tasks::{Head, TaskKind, TaskSamples, extract, score};
 use crate::labels::LabelledData;
-use crate::probe::{Fit, FitOptions, Split, Tokens, fit_end_to_end, fit_frozen};
-use crate::tasks::{Head, TaskKind, TaskSamples, extract, score};
 use crate::{Error, labels};
 
 /// What an encoder row of the results is.
@@ -57,7 +57,7 @@ pub struct Unit {
     pub best_epoch: usize,
     /// Validation metric per epoch.
     pub val_curve: Vec<f64>,
-    /// Predictions on the test rows (in [`TaskRun::split`]'s order).
+    /// Predictions on the test rows (in the order of [`TaskRun::test`]).
     pub test_preds: Vec<Vec<f64>>,
     /// Every metric of the task on the whole test split.
     pub metrics: BTreeMap<String, f64>,
@@ -397,7 +397,7 @@ pub type Progress<'a> = dyn FnMut(&str) + 'a;
 pub fn run(
     cfg: &BenchConfig,
     opts: &RunOptions,
-    ensure_data: &mut dyn FnMut(&crate::config::TaskConfig) -> Result<(), Error>,
+    ensure_data: &mut dyn FnMut(&crate::tacbench::config::TaskConfig) -> Result<(), Error>,
     progress: &mut Progress<'_>,
     task_done: &mut TaskDone<'_>,
 ) -> Result<(BTreeMap<TaskKind, TaskRun>, Vec<Unit>), Error> {

@@ -12,7 +12,7 @@ use sparsh_ssl::probe::{AttentiveProbe, AttentiveProbeConfig};
 use sparsh_ssl::rng::Rng;
 use sparsh_ssl::vit::Vit;
 
-use crate::tasks::{Head, Metric, Sample, score};
+use super::tasks::{Head, Metric, Sample, score};
 
 /// Rows (indices into the task's samples) of the three splits.
 #[derive(Debug, Clone, PartialEq)]
@@ -315,7 +315,7 @@ fn fit<M: Module + Clone>(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::tasks::{Target, TaskKind};
+    use crate::tacbench::tasks::{Target, TaskKind};
 
     /// One token per sample carries the force (scaled by 3) along features 0–2 and a marker along
     /// feature 3, at a random place, over noise elsewhere.
@@ -388,7 +388,7 @@ mod tests {
             // the chosen epoch is the best on validation
             let best = fit.val_curve.iter().copied().fold(f64::INFINITY, f64::min);
             assert_eq!(fit.val_curve[fit.best_epoch - 1], best);
-            crate::tasks::score(Metric::RmseMn, &split.test, &preds, samples)
+            crate::tacbench::tasks::score(Metric::RmseMn, &split.test, &preds, samples)
         };
         // the constant predictor: the training mean
         let constant = |samples: &[Sample]| {
@@ -399,7 +399,7 @@ mod tests {
                 }
             }
             let preds = vec![m.to_vec(); samples.len()];
-            crate::tasks::score(Metric::RmseMn, &split.test, &preds, samples)
+            crate::tacbench::tasks::score(Metric::RmseMn, &split.test, &preds, samples)
         };
         let (mut tokens, samples) = localized(&mut rng, n, t, d, true);
         let (read, mean) = (score_of(&mut tokens, &samples), constant(&samples));

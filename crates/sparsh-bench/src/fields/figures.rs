@@ -18,12 +18,12 @@ use base64::engine::general_purpose::STANDARD;
 use plotters::coord::Shift;
 use sparsh_data::encode_png;
 
-use crate::run::write_atomic;
+use crate::tacbench::run::write_atomic;
 use plotters::prelude::*;
 use plotters::style::text_anchor::{HPos, Pos, VPos};
 use plotters::style::{FontStyle, FontTransform};
 
-const FONT: &[u8] = include_bytes!("../../../assets/fonts/DejaVuSans.ttf");
+const FONT: &[u8] = include_bytes!("../../../../assets/fonts/DejaVuSans.ttf");
 const SANS: &str = "sans-serif";
 
 /// Height of a panel in the figure, in figure pixels (unless its width would pass the cap).

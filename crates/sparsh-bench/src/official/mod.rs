@@ -3,9 +3,11 @@
 //!
 //! [`load`] takes the path the user gave (a file, one dataset directory, or a directory above
 //! several of one kind), finds the layout by the files present ([`detect`]) and maps what each
-//! records into [`FrameLabel`]/[`SequenceLabels`]:
+//! records into [`FrameLabel`](crate::labels::FrameLabel)/
+//! [`SequenceLabels`](crate::labels::SequenceLabels):
 //!
-//! - **Force / slip (T1, T2)** — `tactile_ssl/data/vision_based_forces_slip_probes.py`,
+//! - **Force / slip (T1, T2)**, [`force_slip`] —
+//!   `tactile_ssl/data/vision_based_forces_slip_probes.py`,
 //!   `tactile_ssl/data/digit/utils.py::load_dataset_forces_digit_gelsight`,
 //!   `config/data/{digit,gelsight}_force.yaml`, `config/task/t2_slip_detection.yaml`. A batch
 //!   directory (`<indenter>/batch_<k>/`) holds `dataset_<sensor>_NN.pkl` (lists of JPEG byte
@@ -21,7 +23,7 @@
 //!   `test/<family>/batch_<seq>`), false for the other batches. A `trajectories` that is itself
 //!   `{"indexes", "forces", "slip_label"}` (what earlier `sparsh export` versions wrote) is read
 //!   as one trajectory.
-//! - **Pose (T3)** — `tactile_ssl/data/vision_based_pose_probes.py`,
+//! - **Pose (T3)**, [`pose`] — `tactile_ssl/data/vision_based_pose_probes.py`,
 //!   `digit/utils.py::load_dataset_poses`, `config/data/digit_pose.yaml`. Each
 //!   `{train,test}/<object>/bag_NN.pkl` is one sequence: the ring finger's frames `digit_ring`
 //!   and `object_ring_rel_pose_n5`, per frame the 4×4 transform of the object's pose change over
@@ -32,15 +34,16 @@
 //!   unchanged. The labels are changes over a 5-sample window, not absolute poses and not
 //!   per-frame changes; `pose_change_se2` receives per-frame changes `[tx, ty, yaw]` whose sum
 //!   over every 5 consecutive frames (frames before the first counted as still) equals the
-//!   official window label exactly ([`per_frame_from_window`]). The background is
+//!   official window label exactly ([`pose::per_frame_from_window`]). The background is
 //!   `bgs/digit_ring.png` of an enclosing directory (`path_bgs_fingers`), else the bag's first
 //!   frame. `test` comes from the `train`/`test` directory, `class` is the object directory.
-//! - **Textile (T5)** — `tactile_ssl/data/vision_based_textile_probes.py`,
+//! - **Textile (T5)**, [`textile`] — `tactile_ssl/data/vision_based_textile_probes.py`,
 //!   `digit/utils.py::load_textile_dataset`, `config/data/gelsight_textile.yaml`. Each clip
 //!   directory `{train,test}/<textile>/<clip>/` with `dataset_gelsight.pkl` (a list of JPEG byte
 //!   strings) and `metadata.txt` (`label: <int>` then `class_name: <name>`) is one sequence;
 //!   `class` is the class name (20 classes). No background is subtracted (`remove_bg: false`).
-//! - **Grasp (T4, Feeling of Success)** — `tactile_ssl/data/vision_based_grasp_probes.py`,
+//! - **Grasp (T4, Feeling of Success)**, [`grasp`] —
+//!   `tactile_ssl/data/vision_based_grasp_probes.py`,
 //!   `scripts/download_datasets_scratch/compress_feeling_success.py`,
 //!   `config/data/gelsight_grasp.yaml`. Each `NNN.pkl` is a dictionary of lists, one entry per
 //!   grasp: `is_gripping` and the JPEG frames `gelsight{A,B}_{before,during,after}`. Each grasp
@@ -59,6 +62,11 @@
 //! "any byte non-zero", which is right whatever the type). Not supported: big-integer and
 //! half-precision fields, structured dtypes, and arrays pickled out of band.
 
+pub mod force_slip;
+pub mod grasp;
+pub mod pose;
+pub mod textile;
+
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -66,10 +74,10 @@ use std::sync::Arc;
 use image::RgbImage;
 use rayon::prelude::*;
 use serde_pickle::{HashableValue, Value};
-use sparsh_ssl::data::{Dataset, Frame, Sequence, preprocess};
+use sparsh_ssl::data::{Dataset, Frame, preprocess};
 
 use crate::Error;
-use crate::labels::{FrameLabel, LabelledData, SequenceLabels};
+use crate::labels::LabelledData;
 
 /// Force/slip labels of one batch directory (`dataset_slip_forces.pkl`).
 pub const FORCE_LABELS: &str = "dataset_slip_forces.pkl";
@@ -77,12 +85,6 @@ pub const FORCE_LABELS: &str = "dataset_slip_forces.pkl";
 pub const TEXTILE_FRAMES: &str = "dataset_gelsight.pkl";
 /// Label of one textile clip (`metadata.txt`).
 pub const TEXTILE_METADATA: &str = "metadata.txt";
-/// The finger whose frames and poses the official pose task uses (`finger_type: ring`).
-pub const POSE_FINGER: &str = "ring";
-/// The window of the official pose labels, in samples (`rel_pose_t_window: 5`).
-pub const POSE_WINDOW: usize = 5;
-/// The frame offset of the official force change (`frame_stride: 5`).
-pub const FORCE_DELTA: usize = 5;
 /// Grey level whose subtraction leaves a frame unchanged (no background).
 const NO_BG_GREY: u8 = 127;
 /// How deep below the given directory datasets are searched.
@@ -124,10 +126,10 @@ pub fn load(path: &Path, size: [usize; 2]) -> Result<LabelledData, Error> {
     let mut parts = Vec::with_capacity(found.len());
     for unit in &found {
         match unit {
-            Layout::ForceSlip(dir) => parts.extend(load_force_batch(dir, size)?),
-            Layout::Pose(file) => parts.push(load_pose_bag(file, size)?),
-            Layout::Textile(dir) => parts.push(load_textile_clip(dir, size)?),
-            Layout::Grasp(file) => parts.extend(load_grasp_file(file, size)?),
+            Layout::ForceSlip(dir) => parts.extend(force_slip::load_force_batch(dir, size)?),
+            Layout::Pose(file) => parts.push(pose::load_pose_bag(file, size)?),
+            Layout::Textile(dir) => parts.push(textile::load_textile_clip(dir, size)?),
+            Layout::Grasp(file) => parts.extend(grasp::load_grasp_file(file, size)?),
         }
     }
     if parts.is_empty() {
@@ -725,407 +727,14 @@ fn split_of(path: &Path, levels: usize) -> Option<bool> {
             _ => None,
         })
 }
-
-// ---------------------------------------------------------------------------------------------
-// Force / slip.
-
-/// Official test batches: `flat/batch_1` (T1 force), `*/batch_test` (T2 slip).
-fn force_test_batch(indenter: &str, batch: &str) -> bool {
-    (indenter == "flat" && batch == "batch_1") || batch == "batch_test"
-}
-
-fn load_force_batch(
-    dir: &Path,
-    size: [usize; 2],
-) -> Result<Vec<(Sequence, SequenceLabels)>, Error> {
-    let label_path = dir.join(FORCE_LABELS);
-    let mut pickles = Vec::new();
-    for entry in std::fs::read_dir(dir).map_err(|e| Error::file(dir, e))? {
-        let p = entry.map_err(|e| Error::file(dir, e))?.path();
-        let name = file_name(&p);
-        if name.starts_with("dataset_") && name.ends_with(".pkl") && name != FORCE_LABELS {
-            pickles.push(p);
-        }
-    }
-    pickles.sort();
-    if pickles.is_empty() {
-        return Err(Error::file(
-            dir,
-            format!("no frame pickles dataset_<sensor>_NN.pkl beside {FORCE_LABELS}"),
-        ));
-    }
-    let mut frames = Vec::new();
-    for p in &pickles {
-        let v = read_pickle(p)?;
-        frames.extend(frames_of(&v).map_err(|e| Error::file(p, e))?);
-    }
-    let root = read_dict(&label_path)?;
-    let bad = |msg: String| Error::file(&label_path, msg);
-    let in_contact = field_1d(
-        require(&root, "in_contact", &label_path, "")?,
-        Want::Flag,
-        None,
-    )
-    .map_err(|e| bad(format!("in_contact: {e}")))?;
-    let bg_index = in_contact
-        .iter()
-        .position(|&c| c == 0.0)
-        .ok_or_else(|| bad("in_contact: no frame without contact to take as background".into()))?;
-    let bg_img = frames
-        .get(bg_index)
-        .ok_or_else(|| {
-            bad(format!(
-                "in_contact: background frame {bg_index} beyond the {} frames of the \
-                 dataset_*.pkl files",
-                frames.len()
-            ))
-        })?
-        .decode()
-        .map_err(|e| bad(format!("background frame {bg_index}: {e}")))?;
-
-    let trajectories: Vec<(String, &BTreeMap<HashableValue, Value>)> =
-        match require(&root, "trajectories", &label_path, "")? {
-            Value::Dict(d) if get(d, "indexes").is_some() => vec![("0".into(), d)],
-            Value::Dict(d) => d
-                .iter()
-                .map(|(k, v)| match v {
-                    Value::Dict(t) => Ok((key_name(k), t)),
-                    other => Err(bad(format!(
-                        "trajectories[{}]: expected a dictionary, found {}",
-                        key_name(k),
-                        type_name(other)
-                    ))),
-                })
-                .collect::<Result<_, _>>()?,
-            Value::List(items) => items
-                .iter()
-                .enumerate()
-                .map(|(k, v)| match v {
-                    Value::Dict(t) => Ok((k.to_string(), t)),
-                    other => Err(bad(format!(
-                        "trajectories[{k}]: expected a dictionary, found {}",
-                        type_name(other)
-                    ))),
-                })
-                .collect::<Result<_, _>>()?,
-            other => {
-                return Err(bad(format!(
-                    "trajectories: expected a dictionary, found {}",
-                    type_name(other)
-                )));
-            }
-        };
-
-    let batch = file_name(dir).to_string();
-    let indenter = dir
-        .parent()
-        .map(|p| file_name(p).to_string())
-        .unwrap_or_default();
-    let class = if indenter.is_empty() {
-        batch.clone()
-    } else {
-        format!("{indenter}/{batch}")
-    };
-    let test = force_test_batch(&indenter, &batch) || split_of(dir, 3) == Some(true);
-
-    let mut out = Vec::with_capacity(trajectories.len());
-    for (key, traj) in trajectories {
-        let ctx = format!("trajectories[{key}]: ");
-        let indexes = field_1d(
-            require(traj, "indexes", &label_path, &ctx)?,
-            Want::Int,
-            None,
-        )
-        .map_err(|e| bad(format!("{ctx}indexes: {e}")))?;
-        let n = indexes.len();
-        let forces = to_nd(require(traj, "forces", &label_path, &ctx)?, Want::Float)
-            .map_err(|e| bad(format!("{ctx}forces: {e}")))?;
-        if forces.shape != [n, 3] {
-            return Err(bad(format!(
-                "{ctx}forces: expected {n}×3 values (one row per index), found shape {:?}",
-                forces.shape
-            )));
-        }
-        let slip = field_1d(
-            require(traj, "slip_label", &label_path, &ctx)?,
-            Want::Flag,
-            Some(n),
-        )
-        .map_err(|e| bad(format!("{ctx}slip_label: {e}")))?;
-        let mut picked = Vec::with_capacity(n);
-        for (k, &i) in indexes.iter().enumerate() {
-            if i < 0.0 || i.fract() != 0.0 || i as usize >= frames.len() {
-                return Err(bad(format!(
-                    "{ctx}indexes[{k}] = {i} is not a frame of the {} frames of the \
-                     dataset_*.pkl files",
-                    frames.len()
-                )));
-            }
-            picked.push(&frames[i as usize]);
-        }
-        let rows: Vec<[f64; 3]> = forces
-            .data
-            .chunks_exact(3)
-            .map(|r| [r[0], r[1], r[2]])
-            .collect();
-        let frame_labels = (0..n)
-            .map(|t| {
-                let prev = rows[t.saturating_sub(FORCE_DELTA)];
-                FrameLabel {
-                    force_n: Some(rows[t]),
-                    delta_force_n: Some(std::array::from_fn(|c| rows[t][c] - prev[c])),
-                    slip_cone: Some(slip[t] != 0.0),
-                    ..FrameLabel::default()
-                }
-            })
-            .collect();
-        let pre = prepare(&picked, Some(&bg_img), size, &label_path, &ctx)?;
-        out.push((
-            Sequence {
-                frames: Sequence::decoded(pre),
-                forces: Some(rows.iter().map(|r| r.map(|c| c as f32)).collect()),
-                rest_frame: None,
-            },
-            SequenceLabels {
-                test: Some(test),
-                class: Some(class.clone()),
-                outcome: None,
-                frames: frame_labels,
-            },
-        ));
-    }
-    Ok(out)
-}
-
-// ---------------------------------------------------------------------------------------------
-// Pose.
-
-/// Per-frame changes `d` whose sum over every `w` consecutive frames `t−w+1..=t` (frames before
-/// the first counted as still) equals `window[t]`: `d[t] = window[t] − window[t−1] + d[t−w]`.
-pub fn per_frame_from_window(window: &[[f64; 3]], w: usize) -> Vec<[f64; 3]> {
-    let mut d: Vec<[f64; 3]> = Vec::with_capacity(window.len());
-    for t in 0..window.len() {
-        let prev = if t > 0 { window[t - 1] } else { [0.0; 3] };
-        let back = if w > 0 && t >= w { d[t - w] } else { [0.0; 3] };
-        d.push(std::array::from_fn(|c| window[t][c] - prev[c] + back[c]));
-    }
-    d
-}
-
-/// The official `[tx, ty, yaw°]` of a 4×4 transform (row-major): `translation[1]`,
-/// `translation[0]`, and the z angle of its extrinsic `xyz` Euler angles.
-fn pose_target(m: &[f64]) -> [f64; 3] {
-    let yaw = m[4].atan2(m[0]).to_degrees();
-    [m[7], m[3], yaw]
-}
-
-fn pose_background(bag: &Path) -> Option<PathBuf> {
-    bag.ancestors()
-        .skip(1)
-        .take(5)
-        .map(|a| a.join("bgs").join(format!("digit_{POSE_FINGER}.png")))
-        .find(|p| p.is_file())
-}
-
-fn load_pose_bag(path: &Path, size: [usize; 2]) -> Result<(Sequence, SequenceLabels), Error> {
-    let d = read_dict(path)?;
-    let frames_key = format!("digit_{POSE_FINGER}");
-    let pose_key = format!("object_{POSE_FINGER}_rel_pose_n{POSE_WINDOW}");
-    let frames = frames_of(require(&d, &frames_key, path, "")?)
-        .map_err(|e| Error::file(path, format!("{frames_key}: {e}")))?;
-    let poses = to_nd(require(&d, &pose_key, path, "")?, Want::Float)
-        .map_err(|e| Error::file(path, format!("{pose_key}: {e}")))?;
-    if poses.shape.len() != 3 || poses.shape[1..] != [4, 4] {
-        return Err(Error::file(
-            path,
-            format!(
-                "{pose_key}: expected N×4×4 transforms, found shape {:?}",
-                poses.shape
-            ),
-        ));
-    }
-    // The official loader cuts both to the shorter.
-    let n = frames.len().min(poses.shape[0]);
-    if n == 0 {
-        return Err(Error::file(path, "the bag holds no labelled frames"));
-    }
-    let window: Vec<[f64; 3]> = poses
-        .data
-        .chunks_exact(16)
-        .take(n)
-        .map(pose_target)
-        .collect();
-    let changes = per_frame_from_window(&window, POSE_WINDOW);
-    let bg = match pose_background(path) {
-        Some(p) => image::open(&p)
-            .map(|i| i.to_rgb8())
-            .map_err(|e| Error::file(&p, format!("cannot read background: {}", one_line(e))))?,
-        None => frames[0]
-            .decode()
-            .map_err(|e| Error::file(path, format!("{frames_key}: frame 0: {e}")))?,
-    };
-    let picked: Vec<&Img> = frames.iter().take(n).collect();
-    let pre = prepare(&picked, Some(&bg), size, path, &format!("{frames_key}: "))?;
-    let class = path
-        .parent()
-        .map(|p| file_name(p).to_string())
-        .filter(|c| !c.is_empty());
-    Ok((
-        Sequence {
-            frames: Sequence::decoded(pre),
-            forces: None,
-            rest_frame: None,
-        },
-        SequenceLabels {
-            test: split_of(path, 4),
-            class,
-            outcome: None,
-            frames: changes
-                .into_iter()
-                .map(|c| FrameLabel {
-                    pose_change_se2: Some(c),
-                    ..FrameLabel::default()
-                })
-                .collect(),
-        },
-    ))
-}
-
-// ---------------------------------------------------------------------------------------------
-// Textile.
-
-/// `(label, class_name)` of a textile `metadata.txt`: `label: <int>` then `class_name: <name>`.
-fn parse_metadata(text: &str) -> Result<(i64, Option<String>), String> {
-    let mut lines = text.lines();
-    let first = lines.next().unwrap_or("");
-    let label = first
-        .split("label:")
-        .nth(1)
-        .ok_or_else(|| format!("line 1: expected `label: <int>`, found {first:?}"))?
-        .trim();
-    let label = label
-        .parse()
-        .map_err(|_| format!("line 1: label: expected an integer, found {label:?}"))?;
-    let name = lines
-        .next()
-        .and_then(|l| l.split("class_name:").nth(1))
-        .map(|s| s.trim().to_string())
-        .filter(|s| !s.is_empty());
-    Ok((label, name))
-}
-
-fn load_textile_clip(dir: &Path, size: [usize; 2]) -> Result<(Sequence, SequenceLabels), Error> {
-    let meta_path = dir.join(TEXTILE_METADATA);
-    let text = std::fs::read_to_string(&meta_path).map_err(|e| Error::file(&meta_path, e))?;
-    let (label, name) = parse_metadata(&text).map_err(|e| Error::file(&meta_path, e))?;
-    let frames_path = dir.join(TEXTILE_FRAMES);
-    let frames =
-        frames_of(&read_pickle(&frames_path)?).map_err(|e| Error::file(&frames_path, e))?;
-    if frames.is_empty() {
-        return Err(Error::file(&frames_path, "the pickle holds no frames"));
-    }
-    let picked: Vec<&Img> = frames.iter().collect();
-    let pre = prepare(&picked, None, size, &frames_path, "")?;
-    let class = name.unwrap_or_else(|| label.to_string());
-    Ok((
-        Sequence {
-            frames: Sequence::decoded(pre),
-            forces: None,
-            rest_frame: None,
-        },
-        SequenceLabels {
-            test: split_of(dir, 4),
-            class: Some(class),
-            outcome: None,
-            frames: vec![FrameLabel::default(); picked.len()],
-        },
-    ))
-}
-
-// ---------------------------------------------------------------------------------------------
-// Grasp.
-
-/// Official split of the Feeling of Success files: 0–29 train, 30–35 test.
-fn grasp_split(path: &Path) -> Option<bool> {
-    let n: u32 = path.file_stem()?.to_str()?.parse().ok()?;
-    match n {
-        0..=29 => Some(false),
-        30..=35 => Some(true),
-        _ => None,
-    }
-}
-
-fn load_grasp_file(
-    path: &Path,
-    size: [usize; 2],
-) -> Result<Vec<(Sequence, SequenceLabels)>, Error> {
-    let d = read_dict(path)?;
-    if get(&d, "is_gripping").is_none() {
-        return Err(Error::file(
-            path,
-            "not a Feeling of Success grasp pickle: no `is_gripping` key",
-        ));
-    }
-    let gripping = field_1d(require(&d, "is_gripping", path, "")?, Want::Flag, None)
-        .map_err(|e| Error::file(path, format!("is_gripping: {e}")))?;
-    let n = gripping.len();
-    let names: Option<Vec<String>> = match get(&d, "object_name") {
-        Some(Value::List(items)) if items.len() == n => items
-            .iter()
-            .map(|v| match v {
-                Value::String(s) => Some(s.clone()),
-                Value::Bytes(b) => Some(String::from_utf8_lossy(b).into_owned()),
-                _ => None,
-            })
-            .collect(),
-        _ => None,
-    };
-    let test = grasp_split(path);
-    let mut out = Vec::with_capacity(2 * n);
-    for sensor in ["gelsightA", "gelsightB"] {
-        let mut stages = Vec::with_capacity(3);
-        for stage in ["before", "during", "after"] {
-            let key = format!("{sensor}_{stage}");
-            let frames = frames_of(require(&d, &key, path, "")?)
-                .map_err(|e| Error::file(path, format!("{key}: {e}")))?;
-            if frames.len() != n {
-                return Err(Error::file(
-                    path,
-                    format!("{key}: {} frames but {n} is_gripping labels", frames.len()),
-                ));
-            }
-            stages.push(frames);
-        }
-        for (g, &grip) in gripping.iter().enumerate() {
-            let picked: Vec<&Img> = stages.iter().map(|s| &s[g]).collect();
-            let what = format!("{sensor} grasp {g}: ");
-            let pre = prepare(&picked, None, size, path, &what)?;
-            out.push((
-                Sequence {
-                    frames: Sequence::decoded(pre),
-                    forces: None,
-                    rest_frame: None,
-                },
-                SequenceLabels {
-                    test,
-                    class: names.as_ref().map(|v| v[g].clone()),
-                    outcome: Some(grip != 0.0),
-                    frames: vec![FrameLabel::default(); 3],
-                },
-            ));
-        }
-    }
-    Ok(out)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
     use serde_pickle::{HashableValue as H, Value as V};
 
-    const SIZE: [usize; 2] = [8, 6];
-    const W: u32 = 12;
-    const H_: u32 = 16;
+    pub(super) const SIZE: [usize; 2] = [8, 6];
+    pub(super) const W: u32 = 12;
+    pub(super) const H_: u32 = 16;
 
     fn image(seed: u8) -> RgbImage {
         RgbImage::from_fn(W, H_, |x, y| {
@@ -1143,33 +752,33 @@ mod tests {
         out.into_inner()
     }
 
-    fn jpeg(seed: u8) -> Vec<u8> {
+    pub(super) fn jpeg(seed: u8) -> Vec<u8> {
         encode(&image(seed), image::ImageFormat::Jpeg)
     }
 
-    fn png_uniform(v: u8) -> Vec<u8> {
+    pub(super) fn png_uniform(v: u8) -> Vec<u8> {
         let img = RgbImage::from_pixel(W, H_, image::Rgb([v; 3]));
         encode(&img, image::ImageFormat::Png)
     }
 
-    fn s(k: &str) -> H {
+    pub(super) fn s(k: &str) -> H {
         H::String(k.into())
     }
 
-    fn write_value(path: &Path, v: &V) {
+    pub(super) fn write_value(path: &Path, v: &V) {
         std::fs::create_dir_all(path.parent().unwrap()).unwrap();
         let mut bytes = Vec::new();
         serde_pickle::value_to_writer(&mut bytes, v, serde_pickle::SerOptions::new()).unwrap();
         std::fs::write(path, bytes).unwrap();
     }
 
-    fn frames_list(seeds: &[u8]) -> V {
+    pub(super) fn frames_list(seeds: &[u8]) -> V {
         V::List(seeds.iter().map(|&k| V::Bytes(jpeg(k))).collect())
     }
 
     /// A Python object to pickle the way CPython and numpy do (protocol 3), numpy arrays
     /// included, which `serde-pickle` cannot write.
-    enum P {
+    pub(super) enum P {
         Dict(Vec<(P, P)>),
         List(Vec<P>),
         Str(&'static str),
@@ -1180,7 +789,7 @@ mod tests {
         Nd(&'static str, Vec<usize>, Vec<u8>),
     }
 
-    fn f8(shape: &[usize], v: &[f64]) -> P {
+    pub(super) fn f8(shape: &[usize], v: &[f64]) -> P {
         P::Nd(
             "f8",
             shape.to_vec(),
@@ -1197,8 +806,8 @@ mod tests {
     }
 
     #[derive(Default)]
-    struct Pickler {
-        out: Vec<u8>,
+    pub(super) struct Pickler {
+        pub(super) out: Vec<u8>,
         memo: u8,
         dtypes: BTreeMap<&'static str, u8>,
     }
@@ -1211,7 +820,7 @@ mod tests {
             id
         }
 
-        fn str(&mut self, s: &str) {
+        pub(super) fn str(&mut self, s: &str) {
             self.out.push(b'X');
             self.out.extend((s.len() as u32).to_le_bytes());
             self.out.extend(s.as_bytes());
@@ -1248,7 +857,7 @@ mod tests {
             self.out.extend([b't', b'b']);
         }
 
-        fn obj(&mut self, p: &P) {
+        pub(super) fn obj(&mut self, p: &P) {
             match p {
                 P::Dict(items) => {
                     self.out.push(b'}');
@@ -1300,7 +909,7 @@ mod tests {
         }
     }
 
-    fn write_p(path: &Path, p: &P) {
+    pub(super) fn write_p(path: &Path, p: &P) {
         std::fs::create_dir_all(path.parent().unwrap()).unwrap();
         let mut w = Pickler::default();
         w.out.extend([0x80, 3]);
@@ -1318,7 +927,7 @@ mod tests {
 
     /// A force batch: 6 frames in two pickles, frame 0 without contact; trajectory 0 (numpy)
     /// frames 1..=3, trajectory 1 (lists) frames 0, 4, 5.
-    fn write_force_batch(dir: &Path) {
+    pub(super) fn write_force_batch(dir: &Path) {
         write_value(&dir.join("dataset_digit_00.pkl"), &frames_list(&[0, 1, 2]));
         write_value(&dir.join("dataset_digit_01.pkl"), &frames_list(&[3, 4, 5]));
         let forces0 = [0.1, 0.2, 1.0, 0.3, -0.2, 1.5, 2.0, 0.0, 1.0];
@@ -1370,296 +979,6 @@ mod tests {
             ),
         ]);
         write_p(&dir.join(FORCE_LABELS), &labels);
-    }
-
-    #[test]
-    fn force_slip_batches() {
-        let tmp = tempfile::tempdir().unwrap();
-        write_force_batch(&tmp.path().join("flat/batch_1"));
-        write_force_batch(&tmp.path().join("sphere/batch_2"));
-        let data = load(tmp.path(), SIZE).unwrap();
-        assert_eq!(data.labels.len(), 4);
-        assert_eq!(data.dataset.sequences.len(), 4);
-        assert_eq!(data.dataset.num_frames(), 12);
-        let classes: Vec<_> = data
-            .labels
-            .iter()
-            .map(|l| l.class.clone().unwrap())
-            .collect();
-        assert_eq!(
-            classes,
-            [
-                "flat/batch_1",
-                "flat/batch_1",
-                "sphere/batch_2",
-                "sphere/batch_2"
-            ]
-        );
-        let tests: Vec<_> = data.labels.iter().map(|l| l.test).collect();
-        assert_eq!(tests, [Some(true), Some(true), Some(false), Some(false)]);
-        let t0 = &data.labels[0].frames;
-        assert_eq!(t0.len(), 3);
-        assert_eq!(t0[1].force_n, Some([0.3, -0.2, 1.5]));
-        assert_eq!(t0[2].force_n, Some([2.0, 0.0, 1.0]));
-        let slips: Vec<_> = t0.iter().map(|f| f.slip_cone.unwrap()).collect();
-        assert_eq!(slips, [false, false, true]);
-        // ΔF over 5 samples, clipped to the first sample.
-        let d = t0[2].delta_force_n.unwrap();
-        assert!((d[0] - 1.9).abs() < 1e-12 && (d[1] + 0.2).abs() < 1e-12 && d[2].abs() < 1e-12);
-        let t1 = &data.labels[1].frames;
-        assert_eq!(t1[2].force_n, Some([1.0, 1.0, 0.5]));
-        assert_eq!(
-            t1.iter().map(|f| f.slip_cone.unwrap()).collect::<Vec<_>>(),
-            [false, false, true]
-        );
-        assert_eq!(t1[0].pose_change_se2, None);
-        let seq = &data.dataset.sequences[0];
-        assert_eq!(seq.forces.as_ref().unwrap()[1], [0.3, -0.2, 1.5]);
-        assert_eq!(
-            seq.frames[0].decoded().unwrap().len(),
-            3 * SIZE[0] * SIZE[1]
-        );
-        // Trajectory 1 starts with frame 0, the background: a uniform 0.5 difference.
-        let first = data.dataset.sequences[1].frames[0].decoded().unwrap();
-        assert!(first.iter().all(|&v| v == 127.0 / 255.0));
-        assert!(
-            data.dataset.sequences[0].frames[0]
-                .decoded()
-                .unwrap()
-                .iter()
-                .any(|&v| v != 127.0 / 255.0)
-        );
-        // The label file itself selects its batch.
-        let one = load(&tmp.path().join("sphere/batch_2").join(FORCE_LABELS), SIZE).unwrap();
-        assert_eq!(one.labels.len(), 2);
-        assert_eq!(one.labels[0].test, Some(false));
-        let frame_file = tmp.path().join("sphere/batch_2/dataset_digit_01.pkl");
-        assert_eq!(load(&frame_file, SIZE).unwrap().labels, one.labels);
-        // the TacBench tasks read these labels: force and slip (the cone label only), not pose
-        use crate::tasks::{Target, TaskKind, extract};
-        let force = extract(TaskKind::Force, &data.labels, 0, 1).unwrap();
-        assert_eq!(force.samples.len(), 12);
-        assert_eq!(force.samples[1].target, Target::Force([0.3, -0.2, 1.5]));
-        let slip = extract(TaskKind::Slip, &data.labels, 0, 1).unwrap();
-        assert!(matches!(
-            slip.samples[2].target,
-            Target::Slip {
-                cone: true,
-                state: None,
-                ..
-            }
-        ));
-        let err = extract(TaskKind::Pose, &data.labels, 0, 1).unwrap_err();
-        assert!(err.contains("pose_change_se2"), "{err}");
-    }
-
-    #[test]
-    fn force_batch_as_sparsh_export_writes_it() {
-        let tmp = tempfile::tempdir().unwrap();
-        let dir = tmp.path().join("sim/batch_test");
-        write_value(&dir.join("dataset_0.pkl"), &frames_list(&[7, 8, 9]));
-        sparsh_data::sparsh_pkl::write_slip_forces(
-            &dir.join(FORCE_LABELS),
-            &sparsh_data::sparsh_pkl::SlipForces {
-                in_contact: vec![false, true, true],
-                trajectories: vec![sparsh_data::sparsh_pkl::Trajectory {
-                    indexes: vec![0, 1, 2],
-                    forces: vec![[0.0; 3], [0.1, 0.0, 1.0], [2.0, 0.0, 1.0]],
-                    slip_label: vec![0, 0, 1],
-                }],
-            },
-        )
-        .unwrap();
-        let data = load(&dir, SIZE).unwrap();
-        assert_eq!(data.labels.len(), 1);
-        assert_eq!(data.labels[0].test, Some(true));
-        assert_eq!(data.labels[0].class.as_deref(), Some("sim/batch_test"));
-        let f = &data.labels[0].frames;
-        assert_eq!(f.len(), 3);
-        assert_eq!(f[1].force_n, Some([0.1, 0.0, 1.0]));
-        assert_eq!(f[2].slip_cone, Some(true));
-    }
-
-    /// A homogeneous transform (row-major) rotating `yaw` degrees about z and moving by `t`.
-    fn transform(t: [f64; 3], yaw: f64) -> Vec<f64> {
-        let (s, c) = yaw.to_radians().sin_cos();
-        vec![
-            c, -s, 0.0, t[0], s, c, 0.0, t[1], 0.0, 0.0, 1.0, t[2], 0.0, 0.0, 0.0, 1.0,
-        ]
-    }
-
-    #[test]
-    fn pose_bags() {
-        let tmp = tempfile::tempdir().unwrap();
-        // True per-frame changes [tx, ty, yaw] (tx is the official translation[1]).
-        let truth: Vec<[f64; 3]> = (0..6)
-            .map(|t| [0.1 * t as f64, -0.05 * t as f64, 0.02 * (t as f64 - 2.0)])
-            .collect();
-        let window: Vec<[f64; 3]> = (0..6usize)
-            .map(|t| {
-                let lo = t.saturating_sub(POSE_WINDOW - 1);
-                std::array::from_fn(|c| truth[lo..=t].iter().map(|d| d[c]).sum())
-            })
-            .collect();
-        let mats: Vec<f64> = window
-            .iter()
-            .flat_map(|w| transform([w[1], w[0], 0.3], w[2]))
-            .collect();
-        let bag = tmp.path().join("test/sugar/bag_00.pkl");
-
-        // Frames as a plain list of JPEG bytes, written beside the numpy poses.
-        let mut w = Pickler::default();
-        w.out.extend([0x80, 3, b'}', b'(']);
-        w.str("digit_ring");
-        w.out.extend([b']', b'(']);
-        for k in 0..7u8 {
-            let b = jpeg(k);
-            w.out.push(b'B');
-            w.out.extend((b.len() as u32).to_le_bytes());
-            w.out.extend(b);
-        }
-        w.out.push(b'e');
-        w.str(&format!("object_ring_rel_pose_n{POSE_WINDOW}"));
-        w.obj(&f8(&[6, 4, 4], &mats));
-        w.str("object_index_rel_pose_n5");
-        w.obj(&f8(&[1, 4, 4], &transform([0.0; 3], 0.0)));
-        w.out.extend([b'u', b'.']);
-        std::fs::create_dir_all(bag.parent().unwrap()).unwrap();
-        std::fs::write(&bag, w.out).unwrap();
-        let bg = tmp.path().join("bgs/digit_ring.png");
-        std::fs::create_dir_all(bg.parent().unwrap()).unwrap();
-        std::fs::write(&bg, png_uniform(90)).unwrap();
-
-        let data = load(tmp.path(), SIZE).unwrap();
-        assert_eq!(data.labels.len(), 1);
-        let l = &data.labels[0];
-        assert_eq!(l.test, Some(true));
-        assert_eq!(l.class.as_deref(), Some("sugar"));
-        // 7 frames, 6 poses: cut to 6 as the official loader does.
-        assert_eq!(l.frames.len(), 6);
-        assert_eq!(data.dataset.sequences[0].frames.len(), 6);
-        for (t, f) in l.frames.iter().enumerate() {
-            let d = f.pose_change_se2.unwrap();
-            for c in 0..3 {
-                assert!(
-                    (d[c] - truth[t][c]).abs() < 1e-9,
-                    "frame {t}: {d:?} vs {:?}",
-                    truth[t]
-                );
-            }
-        }
-        // Summed over the last 5 frames, the official window label.
-        let sum: f64 = l.frames[1..6]
-            .iter()
-            .map(|f| f.pose_change_se2.unwrap()[0])
-            .sum();
-        assert!((sum - window[5][0]).abs() < 1e-9);
-        // the pose task's 5-frame change is the official label
-        let pose = crate::tasks::extract(crate::tasks::TaskKind::Pose, &data.labels, 0, 1).unwrap();
-        assert_eq!(pose.samples[0].frame, 5);
-        let crate::tasks::Target::Pose(p) = pose.samples[0].target else {
-            panic!("a pose target");
-        };
-        for c in 0..3 {
-            assert!(
-                (p[c] - window[5][c]).abs() < 1e-9,
-                "{p:?} vs {:?}",
-                window[5]
-            );
-        }
-    }
-
-    #[test]
-    fn window_decomposition() {
-        let window = [
-            [1.0, 0.0, 0.0],
-            [1.0, 0.0, 0.0],
-            [3.0, 1.0, 0.0],
-            [3.0, 1.0, 0.0],
-        ];
-        let d = per_frame_from_window(&window, 2);
-        for t in 0..window.len() {
-            let s: f64 = d[t.saturating_sub(1)..=t].iter().map(|x| x[0]).sum();
-            assert_eq!(s, window[t][0]);
-        }
-        assert_eq!(d[0], [1.0, 0.0, 0.0]);
-    }
-
-    #[test]
-    fn textile_clips() {
-        let tmp = tempfile::tempdir().unwrap();
-        let a = tmp.path().join("train/cotton/clip_0");
-        write_value(
-            &a.join(TEXTILE_FRAMES),
-            &V::List((0..4).map(|_| V::Bytes(png_uniform(200))).collect()),
-        );
-        std::fs::write(a.join(TEXTILE_METADATA), "label: 0\nclass_name: cotton\n").unwrap();
-        // Frames as one N×H×W×3 uint8 numpy array.
-        let b = tmp.path().join("test/broadcloth/clip_3");
-        write_p(
-            &b.join(TEXTILE_FRAMES),
-            &P::Nd(
-                "u1",
-                vec![2, H_ as usize, W as usize, 3],
-                vec![40; 2 * (W * H_ * 3) as usize],
-            ),
-        );
-        std::fs::write(
-            b.join(TEXTILE_METADATA),
-            "label: 5\nclass_name: broad cloth\n",
-        )
-        .unwrap();
-        let data = load(tmp.path(), SIZE).unwrap();
-        assert_eq!(data.labels.len(), 2);
-        assert_eq!(data.labels[0].class.as_deref(), Some("broad cloth"));
-        assert_eq!(data.labels[0].test, Some(true));
-        assert_eq!(data.labels[0].frames.len(), 2);
-        assert_eq!(data.labels[1].class.as_deref(), Some("cotton"));
-        assert_eq!(data.labels[1].test, Some(false));
-        assert_eq!(data.labels[1].frames, vec![FrameLabel::default(); 4]);
-        // No background: the raw image.
-        assert!(
-            data.dataset.sequences[1].frames[0]
-                .decoded()
-                .unwrap()
-                .iter()
-                .all(|&v| v == 200.0 / 255.0)
-        );
-        assert!(
-            data.dataset.sequences[0].frames[1]
-                .decoded()
-                .unwrap()
-                .iter()
-                .all(|&v| v == 40.0 / 255.0)
-        );
-    }
-
-    #[test]
-    fn grasp_files() {
-        let tmp = tempfile::tempdir().unwrap();
-        let mut d = BTreeMap::new();
-        d.insert(s("is_gripping"), V::List(vec![V::Bool(true), V::I64(0)]));
-        d.insert(
-            s("object_name"),
-            V::List(vec![V::String("mug".into()), V::String("ball".into())]),
-        );
-        for sensor in ["gelsightA", "gelsightB"] {
-            for stage in ["before", "during", "after"] {
-                d.insert(s(&format!("{sensor}_{stage}")), frames_list(&[1, 2]));
-            }
-        }
-        write_value(&tmp.path().join("031.pkl"), &V::Dict(d));
-        let data = load(tmp.path(), SIZE).unwrap();
-        assert_eq!(data.labels.len(), 4);
-        assert_eq!(data.dataset.num_frames(), 12);
-        let outcomes: Vec<_> = data.labels.iter().map(|l| l.outcome).collect();
-        assert_eq!(outcomes, [Some(true), Some(false), Some(true), Some(false)]);
-        assert!(
-            data.labels
-                .iter()
-                .all(|l| l.test == Some(true) && l.frames.len() == 3)
-        );
-        assert_eq!(data.labels[1].class.as_deref(), Some("ball"));
     }
 
     #[test]

@@ -10,12 +10,12 @@ use plotters::prelude::*;
 use plotters::style::FontStyle;
 use rayon::prelude::*;
 
+use super::run::{EncoderKind, TaskRun, Unit};
+use super::tasks::{Metric, Target, TaskKind, score};
 use crate::Error;
-use crate::run::{EncoderKind, TaskRun, Unit};
 use crate::stats::{Spread, bootstrap_interval, rank};
-use crate::tasks::{Metric, Target, TaskKind, score};
 
-const FONT: &[u8] = include_bytes!("../../../assets/fonts/DejaVuSans.ttf");
+const FONT: &[u8] = include_bytes!("../../../../assets/fonts/DejaVuSans.ttf");
 const SANS: &str = "sans-serif";
 
 /// One row of `results.csv`.
@@ -105,13 +105,13 @@ pub fn constant_predictions(tr: &TaskRun, train: &[usize]) -> Vec<Vec<f64>> {
         TaskKind::Pose => (0..3)
             .map(|h| {
                 let edges: &[f64] = if h == 2 {
-                    &crate::tasks::POSE_EDGES_DEG
+                    &crate::tacbench::tasks::POSE_EDGES_DEG
                 } else {
-                    &crate::tasks::POSE_EDGES_MM
+                    &crate::tacbench::tasks::POSE_EDGES_MM
                 };
                 majority(
                     &|t| match t {
-                        Target::Pose(p) => crate::tasks::bin_of(p[h], edges),
+                        Target::Pose(p) => crate::tacbench::tasks::bin_of(p[h], edges),
                         _ => 0,
                     },
                     11,

@@ -7,8 +7,8 @@ use std::path::{Path, PathBuf};
 use serde::Deserialize;
 use sparsh_ssl::recipe::Recipe;
 
+use super::tasks::TaskKind;
 use crate::Error;
-use crate::tasks::TaskKind;
 
 /// One `[[task]]`.
 #[derive(Debug, Clone, Deserialize)]
