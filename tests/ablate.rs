@@ -39,7 +39,7 @@ fn pack() -> Option<PathBuf> {
 fn config(dir: &Path, pack: &Path, extra: &str) -> PathBuf {
     std::fs::write(dir.join("recipe.toml"), RECIPE).unwrap();
     let recipe = sparsh_ssl::recipe::Recipe::parse(RECIPE).unwrap();
-    let vit = sparsh_bench::tacbench::run::random_encoder(&recipe, 5).unwrap();
+    let vit = sparsh_bench::encoders::random_encoder(&recipe, 5).unwrap();
     sparsh_ssl::weights::save_encoder(&vit, &dir.join("weights.safetensors")).unwrap();
     let text = format!(
         r#"scene = "{scene}"

@@ -77,7 +77,7 @@ fn setup(dir: &Path) -> PathBuf {
     std::fs::write(dir.join("recipe.toml"), RECIPE).unwrap();
     std::fs::write(dir.join("fields.toml"), CONFIG).unwrap();
     let recipe = sparsh_ssl::recipe::Recipe::parse(RECIPE).unwrap();
-    let vit = sparsh_bench::tacbench::run::random_encoder(&recipe, 5).unwrap();
+    let vit = sparsh_bench::encoders::random_encoder(&recipe, 5).unwrap();
     sparsh_ssl::weights::save_encoder(&vit, &dir.join("weights.safetensors")).unwrap();
     let scene = dir.join("data.toml");
     std::fs::write(&scene, DATA_SCENE).unwrap();
@@ -239,7 +239,7 @@ fn bad_field_probe_inputs_are_one_line_errors() {
     let dir = tmp.path();
     std::fs::write(dir.join("recipe.toml"), RECIPE).unwrap();
     let recipe = sparsh_ssl::recipe::Recipe::parse(RECIPE).unwrap();
-    let vit = sparsh_bench::tacbench::run::random_encoder(&recipe, 5).unwrap();
+    let vit = sparsh_bench::encoders::random_encoder(&recipe, 5).unwrap();
     sparsh_ssl::weights::save_encoder(&vit, &dir.join("weights.safetensors")).unwrap();
     let empty = dir.join("empty");
     std::fs::create_dir_all(&empty).unwrap();
@@ -266,7 +266,7 @@ fn bad_field_probe_inputs_are_one_line_errors() {
     std::fs::write(dir.join("ok.toml"), "recipe = \"recipe.toml\"\n").unwrap();
     let deeper = RECIPE.replace("depth = 2", "depth = 3");
     let other = sparsh_ssl::recipe::Recipe::parse(&deeper).unwrap();
-    let vit = sparsh_bench::tacbench::run::random_encoder(&other, 0).unwrap();
+    let vit = sparsh_bench::encoders::random_encoder(&other, 0).unwrap();
     sparsh_ssl::weights::save_encoder(&vit, &dir.join("weights.safetensors")).unwrap();
     assert_user_error(&train(dir, "ok.toml", &empty, "r"), "does not fit");
     // eval of a directory that holds no run

@@ -90,7 +90,7 @@ const SLIP_CONE_RATIO: f64 = 0.5;
 fn setup(dir: &Path) -> PathBuf {
     std::fs::write(dir.join("recipe.toml"), RECIPE).unwrap();
     let recipe = sparsh_ssl::recipe::Recipe::parse(RECIPE).unwrap();
-    let vit = sparsh_bench::tacbench::run::random_encoder(&recipe, 5).unwrap();
+    let vit = sparsh_bench::encoders::random_encoder(&recipe, 5).unwrap();
     sparsh_ssl::weights::save_encoder(&vit, &dir.join("weights.safetensors")).unwrap();
     let scene = dir.join("data.toml");
     std::fs::write(&scene, DATA_SCENE).unwrap();
@@ -241,7 +241,7 @@ fn tacbench_runs_every_task_and_resumes() {
     );
     // other weights under the same name: the recorded units are not theirs
     let recipe = sparsh_ssl::recipe::Recipe::parse(RECIPE).unwrap();
-    let other = sparsh_bench::tacbench::run::random_encoder(&recipe, 6).unwrap();
+    let other = sparsh_bench::encoders::random_encoder(&recipe, 6).unwrap();
     sparsh_ssl::weights::save_encoder(&other, &tmp.path().join("weights.safetensors")).unwrap();
     assert_user_error(&sparsh(&resumed), "weights file");
 }

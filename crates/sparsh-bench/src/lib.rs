@@ -17,9 +17,13 @@
 //!
 //! - [`labels`]: per-frame labels of generated datasets and the official layouts, one type.
 //! - [`stats`]: bootstrap intervals over test sequences, spread of random draws, quantiles.
+//! - [`encoders`]: a recipe's random initialisation under a seed, missing weights named.
+//! - `io`: atomic writes, TOML configs, the charts' font.
 
 pub mod ablate;
+pub mod encoders;
 pub mod fields;
+mod io;
 pub mod labels;
 pub mod official;
 pub mod stats;

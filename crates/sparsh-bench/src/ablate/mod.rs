@@ -229,7 +229,7 @@ pub fn run(
     ));
     // The run's record is written once the config has been checked whole (pack, test frames,
     // probe weights): a config that fails leaves nothing that --resume would have to continue.
-    crate::tacbench::run::write_atomic(&copy, config.source.as_bytes())?;
+    crate::io::write_atomic(&copy, config.source.as_bytes())?;
     let mut rows = Vec::new();
     for (i, variant) in config.variants.iter().enumerate() {
         let dir = out.join("variants").join(slug(&variant.name));
@@ -255,7 +255,7 @@ pub fn run(
             log,
         )?;
         let json = serde_json::to_vec_pretty(&variant_rows).map_err(|e| Error::file(&record, e))?;
-        crate::tacbench::run::write_atomic(&record, &json)?;
+        crate::io::write_atomic(&record, &json)?;
         rows.extend(variant_rows);
         report::write(out, &rows)?;
     }
@@ -266,7 +266,7 @@ pub fn run(
     } else {
         let row = real_ceiling(config, &pack, &test, &real, &eff, log)?;
         let json = serde_json::to_vec_pretty(&row).map_err(|e| Error::file(&record, e))?;
-        crate::tacbench::run::write_atomic(&record, &json)?;
+        crate::io::write_atomic(&record, &json)?;
         row
     };
     rows.push(real_constant(&pack, &test, &real, &eff));
@@ -300,12 +300,12 @@ impl ProbeEncoder {
                 return Err(Error::config(
                     &config.path,
                     "probe.weights",
-                    crate::tacbench::run::missing_weights(w, &p.recipe),
+                    crate::encoders::missing_weights(w, &p.recipe),
                 ));
             }
             Some(w) => Some(
                 sparsh_ssl::weights::load_encoder(
-                    crate::tacbench::run::random_encoder(&recipe, 0)?,
+                    crate::encoders::random_encoder(&recipe, 0)?,
                     w,
                     None,
                 )
@@ -462,7 +462,7 @@ fn run_variant(
     let start = Instant::now();
     let scene = config::variant_scene(config, variant, eff.sequences)?;
     let scene_path = dir.join("scene.toml");
-    crate::tacbench::run::write_atomic(&scene_path, scene.as_bytes())?;
+    crate::io::write_atomic(&scene_path, scene.as_bytes())?;
     let data_dir = dir.join("data");
     // a complete dataset is kept as it is; an interrupted one is resumed
     if !data_dir.join("manifest.json").is_file() {
@@ -624,7 +624,7 @@ fn run_variant(
         }
         learned("probe (random)", &|seed| {
             probe(
-                &tokens_of(&crate::tacbench::run::random_encoder(&enc.recipe, seed)?),
+                &tokens_of(&crate::encoders::random_encoder(&enc.recipe, seed)?),
                 seed,
             )
         })?;

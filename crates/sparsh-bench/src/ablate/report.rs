@@ -94,8 +94,8 @@ pub fn write(out: &Path, rows: &[Row]) -> Result<(), Error> {
         .map_err(|e| Error::file(&csv_path, e))?;
     }
     let bytes = w.into_inner().map_err(|e| Error::file(&csv_path, e))?;
-    crate::tacbench::run::write_atomic(&csv_path, &bytes)?;
-    crate::tacbench::run::write_atomic(&out.join("ablation.md"), markdown(&rows).as_bytes())?;
+    crate::io::write_atomic(&csv_path, &bytes)?;
+    crate::io::write_atomic(&out.join("ablation.md"), markdown(&rows).as_bytes())?;
     chart(out, &rows)
 }
 
@@ -148,7 +148,7 @@ const SANS: &str = "sans-serif";
 
 /// `ablation.png` and `ablation.svg`.
 fn chart(out: &Path, rows: &[&Row]) -> Result<(), Error> {
-    crate::tacbench::report::register_sans()?;
+    crate::io::register_sans()?;
     let (w, h) = (1400u32, 140 + 34 * rows.len() as u32);
     let mut rgb = vec![0u8; (w * h * 3) as usize];
     draw(
@@ -157,13 +157,13 @@ fn chart(out: &Path, rows: &[&Row]) -> Result<(), Error> {
     )?;
     let img = image::RgbImage::from_raw(w, h, rgb).ok_or_else(|| chart_err("buffer size"))?;
     let png = sparsh_data::encode_png(&img).map_err(chart_err)?;
-    crate::tacbench::run::write_atomic(&out.join("ablation.png"), &png)?;
+    crate::io::write_atomic(&out.join("ablation.png"), &png)?;
     let mut svg = String::new();
     draw(
         SVGBackend::with_string(&mut svg, (w, h)).into_drawing_area(),
         rows,
     )?;
-    crate::tacbench::run::write_atomic(&out.join("ablation.svg"), svg.as_bytes())
+    crate::io::write_atomic(&out.join("ablation.svg"), svg.as_bytes())
 }
 
 fn draw<DB: DrawingBackend>(

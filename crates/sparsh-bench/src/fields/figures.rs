@@ -18,13 +18,10 @@ use base64::engine::general_purpose::STANDARD;
 use plotters::coord::Shift;
 use sparsh_data::encode_png;
 
-use crate::tacbench::run::write_atomic;
+use crate::io::{SANS, register_sans, write_atomic};
 use plotters::prelude::*;
+use plotters::style::FontTransform;
 use plotters::style::text_anchor::{HPos, Pos, VPos};
-use plotters::style::{FontStyle, FontTransform};
-
-const FONT: &[u8] = include_bytes!("../../../../assets/fonts/DejaVuSans.ttf");
-const SANS: &str = "sans-serif";
 
 /// Height of a panel in the figure, in figure pixels (unless its width would pass the cap).
 const PANEL_H: f64 = 240.0;
@@ -453,8 +450,7 @@ fn draw_overlay<DB: DrawingBackend>(
     row_labels: &[String],
     grid: &[Vec<Prepared>],
 ) -> Result<(), String> {
-    plotters::style::register_font(SANS, FontStyle::Normal, FONT)
-        .map_err(|_| "assets/fonts/DejaVuSans.ttf: not a usable font".to_string())?;
+    register_sans().map_err(|e| e.to_string())?;
     let grey = RGBColor(70, 70, 70);
     for (r, (name, row)) in row_labels.iter().zip(grid).enumerate() {
         let (_, y, _, cell_h) = layout.cell(r, 0);

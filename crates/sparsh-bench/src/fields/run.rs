@@ -35,8 +35,9 @@ use super::train::{
     encode_inputs, predict, train,
 };
 use crate::Error;
+use crate::encoders::random_encoder;
+use crate::io::write_atomic;
 use crate::stats::{Spread, bootstrap_interval, rank};
-use crate::tacbench::run::{random_encoder, write_atomic};
 
 /// `[decoder]` of a field-probe config.
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -138,7 +139,7 @@ fn thousand() -> usize {
 impl FieldProbeConfig {
     /// Reads and checks a config; every error names the file and the key.
     pub fn load(path: &Path) -> Result<Self, Error> {
-        let mut cfg: FieldProbeConfig = crate::tacbench::config::read_toml(path)?;
+        let mut cfg: FieldProbeConfig = crate::io::read_toml(path)?;
         if cfg.recipe.is_relative() {
             cfg.recipe = path.parent().unwrap_or(Path::new("")).join(&cfg.recipe);
         }

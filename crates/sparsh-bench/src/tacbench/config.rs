@@ -9,6 +9,7 @@ use sparsh_ssl::recipe::Recipe;
 
 use super::tasks::TaskKind;
 use crate::Error;
+use crate::io::read_toml;
 
 /// One `[[task]]`.
 #[derive(Debug, Clone, Deserialize)]
@@ -169,21 +170,6 @@ fn budgets() -> Vec<f64> {
 }
 fn bootstrap() -> usize {
     1000
-}
-
-/// Reads a TOML file into `T`; a syntax error or unknown key names the file and its line.
-pub fn read_toml<T: serde::de::DeserializeOwned>(path: &Path) -> Result<T, Error> {
-    let text = std::fs::read_to_string(path).map_err(|e| Error::file(path, e))?;
-    toml::from_str(&text).map_err(|e| {
-        let msg = e.message().to_string();
-        match e.span() {
-            Some(span) => {
-                let line = text[..span.start].lines().count().max(1);
-                Error::file(path, format!("line {line}: {msg}"))
-            }
-            None => Error::file(path, msg),
-        }
-    })
 }
 
 impl BenchConfig {

@@ -7,16 +7,13 @@ use std::collections::{BTreeMap, BTreeSet};
 use std::path::Path;
 
 use plotters::prelude::*;
-use plotters::style::FontStyle;
 use rayon::prelude::*;
 
 use super::run::{EncoderKind, TaskRun, Unit};
 use super::tasks::{Metric, Target, TaskKind, score};
 use crate::Error;
+use crate::io::{SANS, register_sans};
 use crate::stats::{Spread, bootstrap_interval, rank};
-
-const FONT: &[u8] = include_bytes!("../../../../assets/fonts/DejaVuSans.ttf");
-const SANS: &str = "sans-serif";
 
 /// One row of `results.csv`.
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
@@ -449,12 +446,6 @@ type Line = (String, String, Vec<(f64, f64, f64, f64)>);
 
 fn chart_err(e: impl std::fmt::Display) -> Error {
     Error::file("chart", e)
-}
-
-/// Registers the bundled DejaVu Sans as the charts' `sans-serif`.
-pub(crate) fn register_sans() -> Result<(), Error> {
-    plotters::style::register_font(SANS, FontStyle::Normal, FONT)
-        .map_err(|_| Error::file("assets/fonts/DejaVuSans.ttf", "not a usable font"))
 }
 
 /// `budget_TASK.png` and `.svg`.

@@ -10,12 +10,13 @@ use burn::prelude::*;
 use serde::{Deserialize, Serialize};
 use sparsh_ssl::data::{AugmentConfig, HostBatch, Sampler, Stacking};
 use sparsh_ssl::recipe::Recipe;
-use sparsh_ssl::train::Trainee;
 use sparsh_ssl::vit::{Vit, VitConfig};
 
 use super::config::BenchConfig;
 use super::probe::{Fit, FitOptions, Split, Tokens, fit_end_to_end, fit_frozen};
 use super::tasks::{Head, TaskKind, TaskSamples, extract, score};
+use crate::encoders::{missing_weights, random_encoder};
+use crate::io::write_atomic;
 use crate::labels::LabelledData;
 use crate::{Error, labels};
 
@@ -234,26 +235,6 @@ pub struct RunOptions {
     /// Where the encoders run and the heads train (a device without autodiff; the CPU's
     /// `Device::flex()` by default). Every model is drawn on the CPU under its seed and moved.
     pub device: Device,
-}
-
-/// What to say of an encoder file that does not exist: how to make it with its recipe.
-pub(crate) fn missing_weights(weights: &Path, recipe: &Path) -> String {
-    format!(
-        "{}: no such file (pretrain it first: sparsh pretrain --config {} --data DATASET --out RUN, \
-         then point weights at RUN/encoder.safetensors)",
-        weights.display(),
-        recipe.display()
-    )
-}
-
-/// The randomly initialised encoder a run of `recipe` with `seed` starts from.
-pub fn random_encoder(recipe: &Recipe, seed: u64) -> Result<Vit, Error> {
-    let drawn = Recipe {
-        seed,
-        ..recipe.clone()
-    };
-    let device = Device::flex().autodiff();
-    Ok(Trainee::init(&drawn, &device)?.encoder().clone())
 }
 
 /// The encoders of a config: pretrained ones (loaded; a file of another architecture is a
@@ -668,21 +649,6 @@ fn quick_sequences(data: &LabelledData, n: usize) -> Vec<usize> {
     keep.extend(take(&test, n_test));
     keep.sort_unstable();
     keep
-}
-
-/// Writes `bytes` to `path` (its directory created) through [`sparsh_data::write_atomic`]; a
-/// failure names the file once, with its cause.
-pub(crate) fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), Error> {
-    if let Some(dir) = path.parent() {
-        std::fs::create_dir_all(dir).map_err(|e| Error::file(dir, e))?;
-    }
-    sparsh_data::write_atomic(path, bytes).map_err(|e| match std::error::Error::source(&e) {
-        Some(cause) => Error::file(path, cause),
-        None => Error::File {
-            path: path.display().to_string(),
-            msg: e.to_string(),
-        },
-    })
 }
 
 /// The frozen encoder's normalized patch tokens for every sample, computed on `device`.
