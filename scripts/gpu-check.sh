@@ -27,7 +27,9 @@
 # GPU_CHECK_QUICK=1 shrinks every size (tiny recipes, small inputs, a few steps): the whole script
 # end to end on a software adapter (Mesa's lavapipe) in a few minutes, as CI's machine can. The
 # binary is $GPU_CHECK_SPARSH if set, else .gpu/sparsh.xz when prepared, else
-# target/release/sparsh; GPU_CHECK_WORK (default /tmp/gpu-check) holds the intermediate files.
+# target/release/sparsh; GPU_CHECK_WORK (default /tmp/gpu-check) holds the intermediate files;
+# GPU_CHECK_STAGE_FACTOR (default 1) multiplies every stage's time limit (a machine shared with
+# other work).
 set -uo pipefail
 
 here=$(cd "$(dirname "$0")/.." && pwd)
@@ -72,7 +74,7 @@ say() { echo "[$(($(date +%s) - start)) s] $*" | tee -a "$log" >&2; }
 # most LIMIT seconds or what is left of the budget (keeping 15 s for the summary); records the
 # exit status and seconds in $work/stages.tsv (124: timed out).
 stage() {
-    local name=$1 limit=$2
+    local name=$1 limit=$(($2 * ${GPU_CHECK_STAGE_FACTOR:-1}))
     shift 2
     local left=$((budget - ($(date +%s) - start) - 15))
     [ "$limit" -gt "$left" ] && limit=$left

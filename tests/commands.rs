@@ -641,6 +641,9 @@ fn the_gpu_check_runs_end_to_end_at_toy_sizes() {
         .env("GPU_CHECK_QUICK", "1")
         .env("GPU_CHECK_SPARSH", env!("CARGO_BIN_EXE_sparsh"))
         .env("GPU_CHECK_WORK", tmp.path().join("work"))
+        // the suite's other tests share the cores: time limits with room to spare
+        .env("GPU_CHECK_SECONDS", "3000")
+        .env("GPU_CHECK_STAGE_FACTOR", "5")
         .output()
         .expect("bash runs");
     assert!(run.status.success(), "{}", stderr(&run));
