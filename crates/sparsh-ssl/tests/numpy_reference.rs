@@ -10,7 +10,7 @@ mod common;
 use std::path::Path;
 
 use burn::prelude::*;
-use common::{Named, normals, python_ready, run_script, write_safetensors};
+use common::{Named, floats, normals, python_ready, run_script, write_safetensors};
 use safetensors::SafeTensors;
 use sparsh_ssl::embed::Pool;
 use sparsh_ssl::host::HostVit;
@@ -160,26 +160,17 @@ fn check(cfg: VitConfig, seed: u64) {
 
     // the same weights in PyTorch, in the official layout (scripts/sparsh_torch.py)
     if torch_ready() {
-        let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../scripts/sparsh_torch.py");
-        let out = std::process::Command::new("python3")
-            .arg(&script)
-            .args([&file, &input_file])
-            .args(["--heads", heads.as_str()])
-            .env("PYTHONDONTWRITEBYTECODE", "1")
-            .output()
-            .unwrap();
-        assert!(
-            out.status.success(),
-            "sparsh_torch.py: {}",
-            String::from_utf8_lossy(&out.stderr)
+        let torch = run_script(
+            "../../../scripts/sparsh_torch.py",
+            &[
+                file.to_str().unwrap(),
+                input_file.to_str().unwrap(),
+                "--heads",
+                heads.as_str(),
+            ],
+            "",
         );
-        let torch: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
-        let values: Vec<f64> = torch["values"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .map(|v| v.as_f64().unwrap())
-            .collect();
+        let values = floats(&torch["values"]);
         assert_eq!(torch["shape"], reference["shape"]);
         let torch_err = ours
             .iter()
