@@ -14,7 +14,7 @@ use common::{
 const DATA_SCENE: &str = r#"
 seed = 7
 [output]
-fields = []
+fields = ["uz"]
 [[family]]
 name = "slide"
 sequences = 12
@@ -69,7 +69,7 @@ fn config(tasks: &[(&str, &str)], budgets: &str) -> String {
         "seed = 3\nbudgets = {budgets}\nbootstrap = 50\n[probe]\nepochs = 2\n\
          [[encoder]]\nname = \"weights\"\nrecipe = \"recipe.toml\"\nweights = \"weights.safetensors\"\n\
          [[random]]\nname = \"random\"\nrecipe = \"recipe.toml\"\ndraws = 2\n\
-         [baselines]\nrecipe = \"recipe.toml\"\n"
+         [baselines]\nrecipe = \"recipe.toml\"\nceiling = true\noracle = true\npixel_size = [32, 24]\n"
     );
     for (kind, data) in tasks {
         s += &format!("[[task]]\nkind = \"{kind}\"\ndata = \"{data}\"\nframe_stride = 2\n");
@@ -140,6 +140,9 @@ fn tacbench_runs_every_task_and_resumes() {
             "random_draws",
             "pixels",
             "end_to_end",
+            "ridge",
+            "ceiling",
+            "floor",
             "constant",
         ] {
             assert!(
@@ -183,14 +186,14 @@ fn tacbench_runs_every_task_and_resumes() {
         .unwrap();
     for task in ["force", "slip"] {
         for budget in [1.0, 0.1] {
-            let (metrics, counts) = constant_by_hand(&data, task, budget, reach, 4);
+            let metrics = constant_by_hand(&data, task, budget, reach, 4);
             let of: Vec<&csv::StringRecord> = rows
                 .iter()
                 .filter(|r| &r[0] == task && &r[2] == "constant" && r[3].parse() == Ok(budget))
                 .collect();
             assert_eq!(of.len(), metrics.len(), "{task} {budget}: {of:?}");
             for r in of {
-                let hand = metrics[&r[4]];
+                let (hand, counts) = metrics[&r[4]];
                 eprintln!(
                     "{task} budget {budget} {}: by hand {hand}, results.csv {}",
                     &r[4], &r[5]
@@ -253,21 +256,24 @@ fn tacbench_runs_every_task_and_resumes() {
 ///   slip leaves out frames without contact, and its cone label is ‖F_xy‖ > [`SLIP_CONE_RATIO`]
 ///   · F_z (the task's `slip_cone_ratio`, applied as the data are loaded in `tacbench::run`);
 /// - the splits (`run::TaskRun::new`): the sequences the data mark `test` are held out; of the
-///   other sequences with samples, in order, every fifth from the fifth is validation;
+///   other sequences with samples, in order, every fifth from the fifth is validation and every
+///   fifth from the third is the seen-shape test split (metrics `seen_…`);
 /// - the budget (`run::TaskRun::budget_sequences`): m = round(budget · n) of the n training
 ///   sequences (at least one), the (i n / m)-th for i < m;
 /// - the predictor (`report::constant_predictions`): the mean force of the budget's samples,
 ///   the majority cone label and stick / partial / gross state (a tie to the lower class);
-/// - the metrics on the test samples (`tasks::score`): RMSE (mN) over the three axes and per
-///   axis; F1 of the slip class (0 without true positives), and balanced accuracies as the
-///   mean recall over the classes the test samples hold.
+/// - the metrics on the test samples of each split (`tasks::score`): RMSE (mN) over the three
+///   axes and per axis; F1 of the slip class (0 without true positives), and balanced accuracies
+///   as the mean recall over the classes the test samples hold.
+///
+/// Each metric comes with the training sequences, training samples and test samples.
 fn constant_by_hand(
     data: &Path,
     task: &str,
     budget: f64,
     reach: usize,
     stride: usize,
-) -> (std::collections::BTreeMap<String, f64>, [usize; 3]) {
+) -> std::collections::BTreeMap<String, (f64, [usize; 3])> {
     use std::collections::BTreeMap;
     /// One sample: its sequence, whether that is held out, force (N), cone label, and state
     /// (0 stick, 1 partial, 2 gross).
@@ -327,58 +333,65 @@ fn constant_by_hand(
     let train: Vec<usize> = rest
         .iter()
         .enumerate()
-        .filter(|(k, _)| k % 5 != 4)
+        .filter(|(k, _)| k % 5 != 4 && k % 5 != 2)
         .map(|x| *x.1)
         .collect();
+    let seen: Vec<usize> = rest.iter().skip(2).step_by(5).copied().collect();
     let n = train.len();
     let m = ((budget * n as f64).round() as usize).clamp(1, n);
     let picked: Vec<usize> = (0..m).map(|i| train[i * n / m]).collect();
     let fit: Vec<&Sample> = samples.iter().filter(|x| picked.contains(&x.seq)).collect();
-    let test: Vec<&Sample> = samples.iter().filter(|x| x.test).collect();
+    let held_out: Vec<&Sample> = samples.iter().filter(|x| x.test).collect();
+    let seen: Vec<&Sample> = samples.iter().filter(|x| seen.contains(&x.seq)).collect();
     let mut out = BTreeMap::new();
-    if task == "force" {
-        let mean: Vec<f64> = (0..3)
-            .map(|k| fit.iter().map(|x| x.force[k]).sum::<f64>() / fit.len() as f64)
-            .collect();
-        let se: Vec<f64> = (0..3)
-            .map(|k| test.iter().map(|x| (x.force[k] - mean[k]).powi(2)).sum())
-            .collect();
-        let rmse = |se: f64, axes: usize| 1000.0 * (se / (axes * test.len()) as f64).sqrt();
-        out.insert("rmse_mn".into(), rmse(se.iter().sum(), 3));
-        for (k, axis) in ["x", "y", "z"].iter().enumerate() {
-            out.insert(format!("rmse_{axis}_mn"), rmse(se[k], 1));
-        }
-    } else {
-        // the majority class of `n` classes among the fitted samples, and the mean recall of
-        // the test samples' classes when every one is predicted as it
-        let majority = |class: &dyn Fn(&Sample) -> usize, n: usize| {
-            let mut counts = vec![0; n];
-            fit.iter().for_each(|x| counts[class(x)] += 1);
-            let best = (0..n).rev().max_by_key(|&c| counts[c]).unwrap();
-            let present: Vec<usize> = (0..n)
-                .filter(|&c| test.iter().any(|x| class(x) == c))
+    for (prefix, test) in [("", held_out), ("seen_", seen)] {
+        let mut put = |name: &str, v: f64| {
+            out.insert(format!("{prefix}{name}"), (v, [m, fit.len(), test.len()]));
+        };
+        if task == "force" {
+            let mean: Vec<f64> = (0..3)
+                .map(|k| fit.iter().map(|x| x.force[k]).sum::<f64>() / fit.len() as f64)
                 .collect();
-            let recall = if present.contains(&best) { 1.0 } else { 0.0 };
-            (best, recall / present.len() as f64)
-        };
-        let (cone, balanced) = majority(&|x| usize::from(x.cone), 2);
-        let (_, state_balanced) = majority(&|x| x.state, 3);
-        let positives = test.iter().filter(|x| x.cone).count() as f64;
-        let (tp, fp) = if cone == 1 {
-            (positives, test.len() as f64 - positives)
+            let se: Vec<f64> = (0..3)
+                .map(|k| test.iter().map(|x| (x.force[k] - mean[k]).powi(2)).sum())
+                .collect();
+            let rmse = |se: f64, axes: usize| 1000.0 * (se / (axes * test.len()) as f64).sqrt();
+            put("rmse_mn", rmse(se.iter().sum(), 3));
+            for (k, axis) in ["x", "y", "z"].iter().enumerate() {
+                put(&format!("rmse_{axis}_mn"), rmse(se[k], 1));
+            }
         } else {
-            (0.0, 0.0)
-        };
-        let f1 = if tp > 0.0 {
-            2.0 * tp / (2.0 * tp + fp + (positives - tp))
-        } else {
-            0.0
-        };
-        out.insert("f1".into(), f1);
-        out.insert("balanced_accuracy".into(), balanced);
-        out.insert("state_balanced_accuracy".into(), state_balanced);
+            // the majority class of `n` classes among the fitted samples, and the mean recall of
+            // the test samples' classes when every one is predicted as it
+            let majority = |class: &dyn Fn(&Sample) -> usize, n: usize| {
+                let mut counts = vec![0; n];
+                fit.iter().for_each(|x| counts[class(x)] += 1);
+                let best = (0..n).rev().max_by_key(|&c| counts[c]).unwrap();
+                let present: Vec<usize> = (0..n)
+                    .filter(|&c| test.iter().any(|x| class(x) == c))
+                    .collect();
+                let recall = if present.contains(&best) { 1.0 } else { 0.0 };
+                (best, recall / present.len() as f64)
+            };
+            let (cone, balanced) = majority(&|x| usize::from(x.cone), 2);
+            let (_, state_balanced) = majority(&|x| x.state, 3);
+            let positives = test.iter().filter(|x| x.cone).count() as f64;
+            let (tp, fp) = if cone == 1 {
+                (positives, test.len() as f64 - positives)
+            } else {
+                (0.0, 0.0)
+            };
+            let f1 = if tp > 0.0 {
+                2.0 * tp / (2.0 * tp + fp + (positives - tp))
+            } else {
+                0.0
+            };
+            put("f1", f1);
+            put("balanced_accuracy", balanced);
+            put("state_balanced_accuracy", state_balanced);
+        }
     }
-    (out, [m, fit.len(), test.len()])
+    out
 }
 
 #[test]
@@ -459,6 +472,40 @@ fn bad_tacbench_configs_fail_on_one_line() {
         1,
     );
     assert_user_error(&run("zero_epochs", &zero), "end_to_end_epochs");
+    // the pixel read-outs' settings
+    for (key, bad) in [
+        ("ridge_block", "ridge_block = 0"),
+        ("pixel_size", "pixel_size = [8, 8]"),
+        ("ceiling_lr", "ceiling_lr = -1.0"),
+    ] {
+        let text = config(&[("force", "data")], "[1.0]")
+            .replacen("pixel_size = [32, 24]\n", "", 1)
+            .replacen(
+                "[baselines]\nrecipe = \"recipe.toml\"\n",
+                &format!("[baselines]\nrecipe = \"recipe.toml\"\n{bad}\n"),
+                1,
+            );
+        assert_user_error(&run(key, &text), &format!("baselines.{key}"));
+    }
+    // the floor oracle on data without the indentation field
+    let no_uz = tmp.path().join("no_uz");
+    let scene = tmp.path().join("no_uz.toml");
+    std::fs::write(
+        &scene,
+        DATA_SCENE.replace("fields = [\"uz\"]", "fields = []"),
+    )
+    .unwrap();
+    let out = sparsh(&[
+        "generate",
+        scene.to_str().unwrap(),
+        "--out",
+        no_uz.to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    assert_user_error(
+        &run("no_uz", &config(&[("force", "no_uz")], "[1.0]")),
+        "\"uz\"",
+    );
     // unknown keys and missing data
     assert_user_error(
         &run(

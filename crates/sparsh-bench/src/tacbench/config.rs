@@ -80,6 +80,34 @@ pub struct BaselineConfig {
     /// Peak learning rate of end-to-end training (default 3e-4).
     #[serde(default = "e2e_lr")]
     pub end_to_end_lr: f64,
+    /// Run the classical read-out: ridge regression on block means of the frames at
+    /// `pixel_size` (`tacbench::pixels`).
+    #[serde(default = "yes")]
+    pub ridge: bool,
+    /// Side of the ridge's blocks in pixels of `pixel_size` (default 8).
+    #[serde(default = "ridge_block")]
+    pub ridge_block: usize,
+    /// Train the supervised ceiling: a small CNN on the frames at `pixel_size` and the task's
+    /// labels (default off: minutes per task and budget on a CPU).
+    #[serde(default)]
+    pub ceiling: bool,
+    /// Train the floor oracles: the ceiling's CNN (every epoch) and the ridge on the true
+    /// indentation −u_z (needs `uz` among the dataset's fields; default off).
+    #[serde(default)]
+    pub oracle: bool,
+    /// `[height, width]` the ridge and the ceiling read the frames at (default 160×120).
+    #[serde(default = "pixel_size")]
+    pub pixel_size: [usize; 2],
+    /// Most epochs of the ceiling (default 40); it stops earlier after `ceiling_patience`
+    /// epochs without a better validation score (default 8).
+    #[serde(default = "ceiling_epochs")]
+    pub ceiling_epochs: usize,
+    /// See `ceiling_epochs`.
+    #[serde(default = "ceiling_patience")]
+    pub ceiling_patience: usize,
+    /// Peak learning rate of the ceiling (default 1e-3).
+    #[serde(default = "probe_lr")]
+    pub ceiling_lr: f64,
 }
 
 /// `[probe]`: training of the attentive probe.
@@ -152,6 +180,18 @@ fn yes() -> bool {
 }
 fn digit_force_scale() -> [f64; 3] {
     [4.0, 4.0, 5.0]
+}
+fn ridge_block() -> usize {
+    8
+}
+fn pixel_size() -> [usize; 2] {
+    [160, 120]
+}
+fn ceiling_epochs() -> usize {
+    40
+}
+fn ceiling_patience() -> usize {
+    8
 }
 fn e2e_lr() -> f64 {
     3e-4
@@ -275,10 +315,41 @@ impl BenchConfig {
                 format!("must be positive, got {}", self.probe.lr),
             );
         }
+        if let Some(b) = &self.baselines {
+            if b.ridge_block == 0 {
+                return bad("baselines.ridge_block", "must be at least 1 pixel".into());
+            }
+            if b.pixel_size.iter().any(|&v| v < 16) {
+                return bad(
+                    "baselines.pixel_size",
+                    format!(
+                        "[height, width] must each be at least 16 pixels, got {:?}",
+                        b.pixel_size
+                    ),
+                );
+            }
+            if b.ceiling_epochs == 0 {
+                return bad("baselines.ceiling_epochs", "must be at least 1".into());
+            }
+            if !(b.ceiling_lr.is_finite() && b.ceiling_lr > 0.0) {
+                return bad(
+                    "baselines.ceiling_lr",
+                    format!("must be positive, got {}", b.ceiling_lr),
+                );
+            }
+        }
         // names become file names and table rows: unique, plain, and none of the baselines'
-        let mut names: std::collections::BTreeSet<String> = ["pixels", "end-to-end", "constant"]
-            .map(String::from)
-            .into();
+        let mut names: std::collections::BTreeSet<String> = [
+            "pixels",
+            "end-to-end",
+            "constant",
+            "ridge",
+            "supervised-cnn",
+            "floor-cnn",
+            "floor-ridge",
+        ]
+        .map(String::from)
+        .into();
         let plain = |n: &str| {
             !n.is_empty()
                 && n.chars()
@@ -296,7 +367,7 @@ impl BenchConfig {
                 return bad(
                     &format!("encoder[{i}].name"),
                     format!(
-                        "`{}` is taken (names are unique; pixels, end-to-end and constant are the baselines')",
+                        "`{}` is taken (names are unique; pixels, end-to-end, ridge, supervised-cnn, floor-cnn, floor-ridge and constant are the baselines')",
                         e.name
                     ),
                 );

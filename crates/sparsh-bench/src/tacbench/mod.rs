@@ -8,11 +8,14 @@
 //! - [`tasks`]: the five tasks (force, slip, pose, texture, grasp): samples, targets, heads,
 //!   losses and metrics.
 //! - [`config`]: the TOML run description.
+//! - [`pixels`]: read-outs without an encoder at the frames' own resolution: the classical
+//!   ridge and the supervised-ceiling CNN.
 //! - [`probe`]: the probe trainer (frozen tokens or end to end), epoch chosen on validation.
 //! - [`report`]: `results.csv`, the Markdown table and the label-budget charts.
 //! - [`run`]: the benchmark loop with resume.
 
 pub mod config;
+pub mod pixels;
 pub mod probe;
 pub mod report;
 pub mod run;

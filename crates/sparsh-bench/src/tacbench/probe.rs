@@ -23,6 +23,8 @@ pub struct Split {
     pub val: Vec<usize>,
     /// Test rows: scored once, with the chosen epoch.
     pub test: Vec<usize>,
+    /// Seen-shape test rows (in distribution; may be empty), scored as `test`.
+    pub seen: Vec<usize>,
 }
 
 /// Training settings.
@@ -36,6 +38,8 @@ pub struct FitOptions {
     pub lr: f64,
     /// Seed of the head's initial draw and of the batch order.
     pub seed: u64,
+    /// Stop after this many epochs without a better validation score (0: run every epoch).
+    pub patience: usize,
 }
 
 /// The outcome of one training.
@@ -47,6 +51,8 @@ pub struct Fit {
     pub val_curve: Vec<f64>,
     /// Decoded predictions for the test rows, in their order.
     pub test_preds: Vec<Vec<f64>>,
+    /// Decoded predictions for the seen-shape test rows, in their order.
+    pub seen_preds: Vec<Vec<f64>>,
 }
 
 /// Frozen tokens of every sample, `[samples, tokens, dim]` row-major.
@@ -210,14 +216,21 @@ fn new_probe(d: usize, head: &Head, classes: usize, seed: u64, device: &Device) 
             .with_outputs(head.outputs(classes))
             .init(device)
     });
-    if let Some(b) = head.force_bias {
-        let bias: Vec<f32> = b.iter().map(|&v| v as f32).collect();
-        probe.fc2.bias = Some(Param::from_tensor(Tensor::from_floats(
-            bias.as_slice(),
-            device,
-        )));
+    if let Some(bias) = force_bias(head, device) {
+        probe.fc2.bias = Some(bias);
     }
     probe
+}
+
+/// The output bias that starts a force head at the training mean ([`Head::force_bias`]), on
+/// `device`; `None` for heads without one.
+pub(super) fn force_bias(head: &Head, device: &Device) -> Option<Param<Tensor<1>>> {
+    let b = head.force_bias?;
+    let bias: Vec<f32> = b.iter().map(|&v| v as f32).collect();
+    Some(Param::from_tensor(Tensor::from_floats(
+        bias.as_slice(),
+        device,
+    )))
 }
 
 /// Heads of the probe's attention: one per 64 features (12 for ViT-base as the official
@@ -226,9 +239,9 @@ fn heads_for(d: usize) -> usize {
     if d.is_multiple_of(64) { d / 64 } else { 1 }
 }
 
-/// The training loop both fits share, on `device` (`model` is moved there).
+/// The training loop the fits share, on `device` (`model` is moved there).
 #[allow(clippy::too_many_arguments)]
-fn fit<M: Module + Clone>(
+pub(super) fn fit<M: Module + Clone>(
     model: M,
     input: &Input<'_>,
     forward: &(dyn Fn(&M, Tensor<3>) -> Tensor<2> + Sync),
@@ -303,12 +316,17 @@ fn fit<M: Module + Clone>(
         if better {
             best = Some((value, epoch + 1, model.clone()));
         }
+        let since_best = epoch + 1 - best.as_ref().map_or(0, |b| b.1);
+        if opts.patience > 0 && since_best >= opts.patience {
+            break;
+        }
     }
     let (_, best_epoch, chosen) = best.expect("at least one epoch");
     Fit {
         best_epoch,
         val_curve,
         test_preds: predict(&chosen, &split.test),
+        seen_preds: predict(&chosen, &split.seen),
     }
 }
 
@@ -369,12 +387,14 @@ mod tests {
             train: rows.iter().copied().filter(|i| i % 5 < 3).collect(),
             val: rows.iter().copied().filter(|i| i % 5 == 3).collect(),
             test: rows.iter().copied().filter(|i| i % 5 == 4).collect(),
+            seen: Vec::new(),
         };
         let opts = FitOptions {
             epochs: 40,
             batch_size: 32,
             lr: 1e-3,
             seed: 1,
+            patience: 0,
         };
         let score_of = |tokens: &mut Tokens, samples: &[Sample]| {
             tokens.standardize(&split.train);

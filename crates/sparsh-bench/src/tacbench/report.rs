@@ -22,7 +22,8 @@ pub struct Row {
     pub task: String,
     /// Encoder (a random group's summary row is `GROUP (K draws)`).
     pub encoder: String,
-    /// `pretrained`, `random`, `random_draws`, `pixels`, `end_to_end` or `constant`.
+    /// `pretrained`, `random`, `random_draws`, `pixels`, `end_to_end`, `ridge`, `ceiling`,
+    /// `floor` (the floor oracle) or `constant`.
     pub kind: String,
     /// Label budget (share of training sequences).
     pub budget: f64,
@@ -60,6 +61,9 @@ fn kind_name(k: EncoderKind) -> &'static str {
         EncoderKind::Random => "random",
         EncoderKind::Pixels => "pixels",
         EncoderKind::EndToEnd => "end_to_end",
+        EncoderKind::Ridge => "ridge",
+        EncoderKind::Ceiling => "ceiling",
+        EncoderKind::Oracle | EncoderKind::OracleRidge => "floor",
     }
 }
 
@@ -126,6 +130,9 @@ pub fn constant_predictions(tr: &TaskRun, train: &[usize]) -> Vec<Vec<f64>> {
     vec![pred; samples.len()]
 }
 
+/// A unit's predictions on one test split.
+type PredsOf = fn(&Unit) -> &[Vec<f64>];
+
 /// Builds the rows of the report from the task runs and units.
 pub fn rows(
     runs: &BTreeMap<TaskKind, TaskRun>,
@@ -137,8 +144,6 @@ pub fn rows(
     let mut rows = Vec::new();
     for (&task, tr) in runs {
         let samples = &tr.samples.samples;
-        let groups = tr.test_groups();
-        let groups = &groups;
         let of_task: Vec<&Unit> = units.iter().filter(|u| u.task == task).collect();
         // (encoder, budget) → units over seeds
         let mut cells: BTreeMap<(String, u64), Vec<&Unit>> = BTreeMap::new();
@@ -148,28 +153,39 @@ pub fn rows(
                 .or_default()
                 .push(u);
         }
-        let full = |u: &Unit| -> Vec<Vec<f64>> {
-            let mut p = vec![Vec::new(); samples.len()];
-            for (&i, v) in tr.test.iter().zip(&u.test_preds) {
-                p[i] = v.clone();
+        let mut computed: Vec<Row> = Vec::new();
+        // the held-out-shape test split, then the seen-shape one (metrics `seen_…`)
+        let splits: [(&str, &[usize], PredsOf); 2] = [
+            ("", &tr.test, |u| &u.test_preds),
+            ("seen_", &tr.seen, |u| &u.seen_preds),
+        ];
+        for (prefix, split, preds_of) in splits {
+            if split.is_empty() {
+                continue;
             }
-            p
-        };
-        let computed: Vec<Row> = cells
-            .par_iter()
-            .flat_map_iter(|((name, bits), us)| {
+            let groups = tr.groups_of(split);
+            let groups = &groups;
+            let full = |u: &Unit| -> Vec<Vec<f64>> {
+                let mut p = vec![Vec::new(); samples.len()];
+                for (&i, v) in split.iter().zip(preds_of(u)) {
+                    p[i] = v.clone();
+                }
+                p
+            };
+            computed.par_extend(cells.par_iter().flat_map_iter(|((name, bits), us)| {
                 let preds: Vec<Vec<Vec<f64>>> = us.iter().map(|u| full(u)).collect();
                 let first = us[0];
                 task.metrics()
                     .iter()
                     .map(move |&m| {
+                        let metric = format!("{prefix}{}", m.name());
                         let value = us
                             .iter()
-                            .map(|u| u.metrics.get(m.name()).copied().unwrap_or(f64::NAN))
+                            .map(|u| u.metrics.get(&metric).copied().unwrap_or(f64::NAN))
                             .sum::<f64>()
                             / us.len() as f64;
                         let stat = |k: &[usize]| {
-                            let rows: Vec<usize> = k.iter().map(|&j| tr.test[j]).collect();
+                            let rows: Vec<usize> = k.iter().map(|&j| split[j]).collect();
                             preds
                                 .iter()
                                 .map(|p| score(m, &rows, p, samples))
@@ -182,7 +198,7 @@ pub fn rows(
                             encoder: name.clone(),
                             kind: kind_name(first.kind).into(),
                             budget: f64::from_bits(*bits),
-                            metric: m.name().into(),
+                            metric,
                             value,
                             seeds: us.len(),
                             ci_low: Some(lo),
@@ -194,42 +210,42 @@ pub fn rows(
                             rank_of: None,
                             train_sequences: first.train_sequences,
                             train_samples: first.train_samples,
-                            test_samples: tr.test.len(),
+                            test_samples: split.len(),
                         }
                     })
                     .collect::<Vec<_>>()
-            })
-            .collect();
-        // the constant predictor per budget
-        for &budget in budgets {
-            let seqs = tr.budget_sequences(budget);
-            let train = tr.rows(&seqs);
-            let preds = constant_predictions(tr, &train);
-            for &m in task.metrics() {
-                let stat = |k: &[usize]| {
-                    let rows: Vec<usize> = k.iter().map(|&j| tr.test[j]).collect();
-                    score(m, &rows, &preds, samples)
-                };
-                let (lo, hi) = bootstrap_interval(groups, draws, seed, stat);
-                rows.push(Row {
-                    task: task.name().into(),
-                    encoder: "constant".into(),
-                    kind: "constant".into(),
-                    budget,
-                    metric: m.name().into(),
-                    value: score(m, &tr.test, &preds, samples),
-                    seeds: 1,
-                    ci_low: Some(lo),
-                    ci_high: Some(hi),
-                    draws_sd: None,
-                    draws_min: None,
-                    draws_max: None,
-                    rank: None,
-                    rank_of: None,
-                    train_sequences: seqs.len(),
-                    train_samples: train.len(),
-                    test_samples: tr.test.len(),
-                });
+            }));
+            // the constant predictor per budget
+            for &budget in budgets {
+                let seqs = tr.budget_sequences(budget);
+                let train = tr.rows(&seqs);
+                let preds = constant_predictions(tr, &train);
+                for &m in task.metrics() {
+                    let stat = |k: &[usize]| {
+                        let rows: Vec<usize> = k.iter().map(|&j| split[j]).collect();
+                        score(m, &rows, &preds, samples)
+                    };
+                    let (lo, hi) = bootstrap_interval(groups, draws, seed, stat);
+                    rows.push(Row {
+                        task: task.name().into(),
+                        encoder: "constant".into(),
+                        kind: "constant".into(),
+                        budget,
+                        metric: format!("{prefix}{}", m.name()),
+                        value: score(m, split, &preds, samples),
+                        seeds: 1,
+                        ci_low: Some(lo),
+                        ci_high: Some(hi),
+                        draws_sd: None,
+                        draws_min: None,
+                        draws_max: None,
+                        rank: None,
+                        rank_of: None,
+                        train_sequences: seqs.len(),
+                        train_samples: train.len(),
+                        test_samples: split.len(),
+                    });
+                }
             }
         }
         // random-draw summaries and ranks
@@ -247,14 +263,27 @@ pub fn rows(
             .filter(|u| u.kind == EncoderKind::Random)
             .filter_map(|u| u.group.clone())
             .collect();
+        let prefixes: &[&str] = if tr.seen.is_empty() {
+            &[""]
+        } else {
+            &["", "seen_"]
+        };
+        let metric_names: Vec<(String, bool)> = prefixes
+            .iter()
+            .flat_map(|p| {
+                task.metrics()
+                    .iter()
+                    .map(move |m| (format!("{p}{}", m.name()), m.higher_is_better()))
+            })
+            .collect();
         for g in &groups_present {
             for &budget in budgets {
-                for &m in task.metrics() {
+                for (metric, higher_is_better) in &metric_names {
                     let draws_rows: Vec<&Row> = computed
                         .iter()
                         .filter(|r| {
                             r.budget == budget
-                                && r.metric == m.name()
+                                && &r.metric == metric
                                 && kind_of.get(&r.encoder) == Some(&EncoderKind::Random)
                                 && group_of.get(&r.encoder).cloned().flatten().as_deref() == Some(g)
                         })
@@ -269,7 +298,7 @@ pub fn rows(
                         encoder: format!("{g} ({} draws)", values.len()),
                         kind: "random_draws".into(),
                         budget,
-                        metric: m.name().into(),
+                        metric: metric.clone(),
                         value: s.mean,
                         seeds: draws_rows[0].seeds,
                         ci_low: None,
@@ -281,15 +310,19 @@ pub fn rows(
                         rank_of: None,
                         train_sequences: draws_rows[0].train_sequences,
                         train_samples: draws_rows[0].train_samples,
-                        test_samples: tr.test.len(),
+                        test_samples: if metric.starts_with("seen_") {
+                            tr.seen.len()
+                        } else {
+                            tr.test.len()
+                        },
                     });
                     for r in with_ranks.iter_mut().filter(|r| {
                         r.budget == budget
-                            && r.metric == m.name()
+                            && &r.metric == metric
                             && kind_of.get(&r.encoder) == Some(&EncoderKind::Pretrained)
                             && group_of.get(&r.encoder).cloned().flatten().as_deref() == Some(g)
                     }) {
-                        r.rank = Some(rank(r.value, &values, m.higher_is_better()));
+                        r.rank = Some(rank(r.value, &values, *higher_is_better));
                         r.rank_of = Some(values.len() + 1);
                     }
                 }
@@ -302,8 +335,11 @@ pub fn rows(
         "random_draws" => 1,
         "pixels" => 2,
         "end_to_end" => 3,
-        "constant" => 4,
-        _ => 5,
+        "floor" => 4,
+        "ceiling" => 5,
+        "ridge" => 6,
+        "constant" => 7,
+        _ => 8,
     };
     rows.sort_by(|a, b| {
         (&a.task, order(&a.kind), &a.encoder, &a.metric)
@@ -343,7 +379,8 @@ fn primary(task: &str) -> Metric {
     kind.metrics()[0]
 }
 
-/// The Markdown table: per task, its first metric per encoder and budget.
+/// The Markdown tables: per task, its first metric per encoder and budget on the test split, and
+/// on the seen-shape test split where the task has one.
 pub fn markdown(rows: &[Row], budgets: &[f64]) -> String {
     let mut s = String::new();
     let tasks: Vec<&str> = {
@@ -358,53 +395,63 @@ pub fn markdown(rows: &[Row], budgets: &[f64]) -> String {
         } else {
             "lower is better"
         };
-        s += &format!(
-            "\n**{task}** — {} ({arrow}); 95 % bootstrap interval over test sequences; pretrained encoders ranked among the random draws of their architecture\n\n",
-            m.name()
-        );
-        s += "| encoder |";
-        for b in budgets {
-            s += &format!(" budget {b} |");
-        }
-        s += "\n|---|";
-        s += &"---|".repeat(budgets.len());
-        s += "\n";
-        let mut names: Vec<(&str, &str)> = rows
-            .iter()
-            .filter(|r| r.task == task && r.metric == m.name() && r.kind != "random")
-            .map(|r| (r.encoder.as_str(), r.kind.as_str()))
-            .collect();
-        names.dedup();
-        for (name, kind) in names {
-            s += &format!("| {name} |");
-            for &b in budgets {
-                let cell = rows.iter().find(|r| {
-                    r.task == task && r.metric == m.name() && r.encoder == name && r.budget == b
-                });
-                s += &match cell {
-                    None => " – |".to_string(),
-                    Some(r) if kind == "random_draws" => format!(
-                        " {} ± {} [{}–{}] |",
-                        fmt(r.value),
-                        fmt(r.draws_sd.unwrap_or(0.0)),
-                        fmt(r.draws_min.unwrap_or(f64::NAN)),
-                        fmt(r.draws_max.unwrap_or(f64::NAN))
-                    ),
-                    Some(r) => {
-                        let rank = match (r.rank, r.rank_of) {
-                            (Some(k), Some(n)) => format!(", rank {k}/{n}"),
-                            _ => String::new(),
-                        };
-                        format!(
-                            " {} [{}, {}]{rank} |",
-                            fmt(r.value),
-                            fmt(r.ci_low.unwrap_or(f64::NAN)),
-                            fmt(r.ci_high.unwrap_or(f64::NAN))
-                        )
-                    }
-                };
+        for (metric, split) in [
+            (m.name().to_string(), "held-out-shape test sequences"),
+            (
+                format!("seen_{}", m.name()),
+                "seen-shape test sequences (in distribution)",
+            ),
+        ] {
+            let mut names: Vec<(&str, &str)> = rows
+                .iter()
+                .filter(|r| r.task == task && r.metric == metric && r.kind != "random")
+                .map(|r| (r.encoder.as_str(), r.kind.as_str()))
+                .collect();
+            names.dedup();
+            if names.is_empty() {
+                continue;
             }
+            s += &format!(
+                "\n**{task}** — {metric} ({arrow}); 95 % bootstrap interval over {split}; pretrained encoders ranked among the random draws of their architecture\n\n"
+            );
+            s += "| encoder |";
+            for b in budgets {
+                s += &format!(" budget {b} |");
+            }
+            s += "\n|---|";
+            s += &"---|".repeat(budgets.len());
             s += "\n";
+            for (name, kind) in names {
+                s += &format!("| {name} |");
+                for &b in budgets {
+                    let cell = rows.iter().find(|r| {
+                        r.task == task && r.metric == metric && r.encoder == name && r.budget == b
+                    });
+                    s += &match cell {
+                        None => " – |".to_string(),
+                        Some(r) if kind == "random_draws" => format!(
+                            " {} ± {} [{}–{}] |",
+                            fmt(r.value),
+                            fmt(r.draws_sd.unwrap_or(0.0)),
+                            fmt(r.draws_min.unwrap_or(f64::NAN)),
+                            fmt(r.draws_max.unwrap_or(f64::NAN))
+                        ),
+                        Some(r) => {
+                            let rank = match (r.rank, r.rank_of) {
+                                (Some(k), Some(n)) => format!(", rank {k}/{n}"),
+                                _ => String::new(),
+                            };
+                            format!(
+                                " {} [{}, {}]{rank} |",
+                                fmt(r.value),
+                                fmt(r.ci_low.unwrap_or(f64::NAN)),
+                                fmt(r.ci_high.unwrap_or(f64::NAN))
+                            )
+                        }
+                    };
+                }
+                s += "\n";
+            }
         }
     }
     s

@@ -13,6 +13,7 @@ use sparsh_ssl::recipe::Recipe;
 use sparsh_ssl::vit::{Vit, VitConfig};
 
 use super::config::BenchConfig;
+use super::pixels::{PixelInputs, fit_ceiling, fit_ridge};
 use super::probe::{Fit, FitOptions, Split, Tokens, fit_end_to_end, fit_frozen};
 use super::tasks::{Head, TaskKind, TaskSamples, extract, score};
 use crate::encoders::{missing_weights, random_encoder};
@@ -32,6 +33,16 @@ pub enum EncoderKind {
     Pixels,
     /// The ViT trained from scratch with the head on the budget's labels.
     EndToEnd,
+    /// The classical read-out: ridge regression on block means of the frames
+    /// ([`super::pixels::fit_ridge`]).
+    Ridge,
+    /// The supervised ceiling: a CNN trained on the frames at their own resolution
+    /// ([`super::pixels::fit_ceiling`]).
+    Ceiling,
+    /// The floor oracle: the ceiling's CNN on the true indentation ([`super::pixels`]).
+    Oracle,
+    /// The floor oracle's linear read-out: the ridge on the true indentation.
+    OracleRidge,
 }
 
 /// One finished (task, encoder, budget, seed): what the report is made from.
@@ -60,7 +71,11 @@ pub struct Unit {
     pub val_curve: Vec<f64>,
     /// Predictions on the test rows (in the order of [`TaskRun::test`]).
     pub test_preds: Vec<Vec<f64>>,
-    /// Every metric of the task on the whole test split.
+    /// Predictions on the seen-shape test rows (in the order of [`TaskRun::seen`]).
+    #[serde(default)]
+    pub seen_preds: Vec<Vec<f64>>,
+    /// Every metric of the task on the whole test split, and as `seen_<metric>` on the
+    /// seen-shape test split when the task has one.
     pub metrics: BTreeMap<String, f64>,
     /// Fingerprint of the test samples (their sequences and frames) the predictions belong to.
     pub test_key: u64,
@@ -74,6 +89,10 @@ pub struct TaskRun {
     pub test: Vec<usize>,
     /// Validation rows.
     pub val: Vec<usize>,
+    /// Seen-shape test rows: held-out sequences of the training split's shapes, scored as a
+    /// second test split (in distribution) where the data hold out shapes for testing; empty
+    /// otherwise (the test split is then itself in distribution).
+    pub seen: Vec<usize>,
     /// Training sequences (the pool budgets take shares of), in order.
     pub train_sequences: Vec<usize>,
     /// Every training-split row (for token statistics).
@@ -84,7 +103,8 @@ pub struct TaskRun {
 
 impl TaskRun {
     /// Splits `samples` by sequence: the data's own test split when it has one (held-out
-    /// indenter shapes), else every fifth sequence; of the rest every fifth is validation.
+    /// indenter shapes), else every fifth sequence; of the rest every fifth is validation, and
+    /// where the data hold out shapes another fifth is the seen-shape test split.
     pub fn new(data: Arc<LabelledData>, samples: TaskSamples) -> Result<Self, String> {
         let seqs: Vec<usize> = {
             let mut s: Vec<usize> = samples.samples.iter().map(|s| s.sequence).collect();
@@ -113,10 +133,15 @@ impl TaskRun {
             .map(|(_, &s)| s)
             .collect();
         let val_seqs: Vec<usize> = rest.iter().copied().skip(4).step_by(5).collect();
+        let seen_seqs: Vec<usize> = if marked {
+            rest.iter().copied().skip(2).step_by(5).collect()
+        } else {
+            Vec::new()
+        };
         let train_sequences: Vec<usize> = rest
             .iter()
             .copied()
-            .filter(|s| !val_seqs.contains(s))
+            .filter(|s| !val_seqs.contains(s) && !seen_seqs.contains(s))
             .collect();
         if test_seqs.is_empty() || val_seqs.is_empty() || train_sequences.is_empty() {
             return Err(format!(
@@ -134,6 +159,7 @@ impl TaskRun {
         Ok(Self {
             test: rows_of(&test_seqs),
             val: rows_of(&val_seqs),
+            seen: rows_of(&seen_seqs),
             pool: rows_of(&train_sequences),
             train_sequences,
             samples,
@@ -178,11 +204,11 @@ impl TaskRun {
             .collect()
     }
 
-    /// Fingerprint of the test samples (FNV-1a over their sequence and frame indices): a
-    /// recorded unit whose key differs was made on other data.
+    /// Fingerprint of the test samples of both test splits (FNV-1a over their sequence and
+    /// frame indices): a recorded unit whose key differs was made on other data or splits.
     pub fn test_key(&self) -> u64 {
         let mut h: u64 = 0xcbf2_9ce4_8422_2325;
-        for &i in &self.test {
+        for &i in self.test.iter().chain(&self.seen) {
             let s = &self.samples.samples[i];
             for v in [s.sequence as u64, s.frame as u64] {
                 for b in v.to_le_bytes() {
@@ -193,10 +219,10 @@ impl TaskRun {
         h
     }
 
-    /// Test rows grouped by sequence, for the bootstrap.
-    pub fn test_groups(&self) -> Vec<Vec<usize>> {
+    /// Positions in `rows` (a test split) grouped by sequence, for the bootstrap.
+    pub fn groups_of(&self, rows: &[usize]) -> Vec<Vec<usize>> {
         let mut groups: BTreeMap<usize, Vec<usize>> = BTreeMap::new();
-        for (k, &i) in self.test.iter().enumerate() {
+        for (k, &i) in rows.iter().enumerate() {
             groups
                 .entry(self.samples.samples[i].sequence)
                 .or_default()
@@ -311,9 +337,25 @@ pub fn encoders(
                 name: "end-to-end".into(),
                 kind: EncoderKind::EndToEnd,
                 group: None,
-                recipe,
+                recipe: recipe.clone(),
                 vit: None,
             });
+        }
+        for (on, name, kind) in [
+            (b.ridge, "ridge", EncoderKind::Ridge),
+            (b.ceiling, "supervised-cnn", EncoderKind::Ceiling),
+            (b.oracle, "floor-cnn", EncoderKind::Oracle),
+            (b.oracle, "floor-ridge", EncoderKind::OracleRidge),
+        ] {
+            if on {
+                out.push(EncoderEntry {
+                    name: name.into(),
+                    kind,
+                    group: None,
+                    recipe: recipe.clone(),
+                    vit: None,
+                });
+            }
         }
     }
     Ok(out)
@@ -427,6 +469,7 @@ pub fn run(
                 }
             }
         }
+        let mut origin: Vec<usize> = (0..data.labels.len()).collect();
         if opts.quick {
             let keep = quick_sequences(&data, 20);
             data.dataset.sequences = keep
@@ -434,6 +477,7 @@ pub fn run(
                 .map(|&s| data.dataset.sequences[s].clone())
                 .collect();
             data.labels = keep.iter().map(|&s| data.labels[s].clone()).collect();
+            origin = keep;
         }
         let stride = if opts.quick {
             task.frame_stride * 2
@@ -456,6 +500,11 @@ pub fn run(
             )
         })?;
         let classes = tr.samples.classes.len();
+        if cfg.baselines.as_ref().is_some_and(|b| b.oracle) && !opts.report_only {
+            PixelInputs::check_indentation(&task.data)?;
+        }
+        let mut pixels: Option<PixelInputs> = None;
+        let mut indentation: Option<PixelInputs> = None;
         for enc in &encoders {
             let mut todo: Vec<(f64, u64)> = Vec::new();
             for b in &budgets {
@@ -466,7 +515,10 @@ pub fn run(
                         continue;
                     }
                     let unit = read_unit(&path)?;
-                    if unit.test_key != tr.test_key() || unit.test_preds.len() != tr.test.len() {
+                    if unit.test_key != tr.test_key()
+                        || unit.test_preds.len() != tr.test.len()
+                        || unit.seen_preds.len() != tr.seen.len()
+                    {
                         return Err(Error::file(
                             &path,
                             format!(
@@ -480,6 +532,24 @@ pub fn run(
             }
             if todo.is_empty() || opts.report_only {
                 continue;
+            }
+            let b = cfg.baselines.as_ref();
+            if matches!(enc.kind, EncoderKind::Ridge | EncoderKind::Ceiling) && pixels.is_none() {
+                let size = b.expect("pixel read-outs come from [baselines]").pixel_size;
+                pixels = Some(PixelInputs::load(
+                    &task.data,
+                    &tr.samples.samples,
+                    &origin,
+                    size,
+                )?);
+            }
+            let oracle = matches!(enc.kind, EncoderKind::Oracle | EncoderKind::OracleRidge);
+            if oracle && indentation.is_none() {
+                indentation = Some(PixelInputs::load_indentation(
+                    &task.data,
+                    &tr.samples.samples,
+                    &origin,
+                )?);
             }
             let sampler = Sampler::new(Arc::new(data.dataset.clone()), enc.recipe.stacking())?;
             let index: BTreeMap<(usize, usize), usize> = sampler
@@ -522,7 +592,11 @@ pub fn run(
                     picks.len(),
                     enc.recipe.encoder.patch_size,
                 )),
-                EncoderKind::EndToEnd => None,
+                EncoderKind::EndToEnd
+                | EncoderKind::Ridge
+                | EncoderKind::Ceiling
+                | EncoderKind::Oracle
+                | EncoderKind::OracleRidge => None,
             };
             if let Some(t) = &mut tokens {
                 t.standardize(&tr.pool);
@@ -534,11 +608,59 @@ pub fn run(
                     train: train.clone(),
                     val: tr.val.clone(),
                     test: tr.test.clone(),
+                    seen: tr.seen.clone(),
                 };
                 let train_refs: Vec<_> = train.iter().map(|&i| &tr.samples.samples[i]).collect();
                 let head = Head::new(task.kind, classes, task.force_scale_n, &train_refs);
                 let fit_seed = cfg.seed.wrapping_mul(1_000_003).wrapping_add(seed);
+                let pixel_fit = |kind: EncoderKind| -> Fit {
+                    let p = if matches!(kind, EncoderKind::Oracle | EncoderKind::OracleRidge) {
+                        indentation.as_ref()
+                    } else {
+                        pixels.as_ref()
+                    }
+                    .expect("loaded above");
+                    let b = b.expect("pixel read-outs come from [baselines]");
+                    if matches!(kind, EncoderKind::Ridge | EncoderKind::OracleRidge) {
+                        return fit_ridge(
+                            p,
+                            b.ridge_block,
+                            &tr.samples.samples,
+                            &head,
+                            classes,
+                            &split,
+                        );
+                    }
+                    fit_ceiling(
+                        p,
+                        &tr.samples.samples,
+                        &head,
+                        classes,
+                        &split,
+                        FitOptions {
+                            epochs: if opts.quick { 2 } else { b.ceiling_epochs },
+                            batch_size: cfg.probe.batch_size,
+                            lr: b.ceiling_lr,
+                            seed: fit_seed,
+                            // the oracle runs every epoch: an estimate of the floor from above
+                            // gains from every one
+                            patience: if kind == EncoderKind::Oracle {
+                                0
+                            } else {
+                                b.ceiling_patience
+                            },
+                        },
+                        &opts.device,
+                    )
+                };
                 let fit: Fit = match (&tokens, enc.kind) {
+                    (
+                        None,
+                        EncoderKind::Ridge
+                        | EncoderKind::Ceiling
+                        | EncoderKind::Oracle
+                        | EncoderKind::OracleRidge,
+                    ) => pixel_fit(enc.kind),
                     (Some(t), _) => fit_frozen(
                         t,
                         &tr.samples.samples,
@@ -550,6 +672,7 @@ pub fn run(
                             batch_size: cfg.probe.batch_size,
                             lr: cfg.probe.lr,
                             seed: fit_seed,
+                            patience: 0,
                         },
                         &opts.device,
                     ),
@@ -575,26 +698,29 @@ pub fn run(
                                 batch_size: cfg.probe.batch_size,
                                 lr: b.end_to_end_lr,
                                 seed: fit_seed,
+                                patience: 0,
                             },
                             &opts.device,
                         )
                     }
                 };
                 let mut preds = vec![Vec::new(); tr.samples.samples.len()];
-                for (&i, p) in tr.test.iter().zip(&fit.test_preds) {
+                for (&i, p) in tr
+                    .test
+                    .iter()
+                    .zip(&fit.test_preds)
+                    .chain(tr.seen.iter().zip(&fit.seen_preds))
+                {
                     preds[i] = p.clone();
                 }
-                let metrics = task
-                    .kind
-                    .metrics()
-                    .iter()
-                    .map(|&m| {
-                        (
-                            m.name().to_string(),
-                            score(m, &tr.test, &preds, &tr.samples.samples),
-                        )
-                    })
-                    .collect::<BTreeMap<_, _>>();
+                let mut metrics = BTreeMap::new();
+                for &m in task.kind.metrics() {
+                    let on = |rows: &[usize]| score(m, rows, &preds, &tr.samples.samples);
+                    metrics.insert(m.name().to_string(), on(&tr.test));
+                    if !tr.seen.is_empty() {
+                        metrics.insert(format!("seen_{}", m.name()), on(&tr.seen));
+                    }
+                }
                 let unit = Unit {
                     task: task.kind,
                     encoder: enc.name.clone(),
@@ -607,6 +733,7 @@ pub fn run(
                     best_epoch: fit.best_epoch,
                     val_curve: fit.val_curve,
                     test_preds: fit.test_preds,
+                    seen_preds: fit.seen_preds,
                     metrics,
                     test_key: tr.test_key(),
                 };

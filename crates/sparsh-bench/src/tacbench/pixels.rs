@@ -1,0 +1,646 @@
+//! Read-outs that need no encoder, on a task's frames at a resolution of their own (160×120 by
+//! default, 2.8× the CPU recipes' 96×72 along each side): the classical ridge regression on
+//! block means of the background-subtracted frame, and a small CNN trained on the task's labels —
+//! the supervised ceiling a frozen encoder's probe is judged against.
+//!
+//! Both read one input per sample: the frame minus its background (3 channels) and minus the
+//! frame five before it (3), the official I_t ⊕ I_{t−5} pair as differences.
+//!
+//! The same CNN and ridge on the simulator's true indentation −u_z at t and t − 5 instead of the
+//! frames are the **floor oracles**: they are given everything the frames could show of the gel's
+//! surface and nothing they cannot (the gel's stiffness and friction, where a slide began), so
+//! each one's error bounds from above the task's identifiability floor — the error of the best
+//! predictor the input allows. (With one gel a layer's normal force is a linear functional of
+//! u_z over the whole surface, which the ridge can represent.)
+
+use std::collections::BTreeMap;
+use std::path::Path;
+
+use burn::module::Module;
+use burn::nn::PaddingConfig2d;
+use burn::nn::conv::{Conv2d, Conv2dConfig};
+use burn::prelude::*;
+use burn::tensor::activation::relu;
+use faer::Mat;
+use faer::linalg::solvers::Solve;
+use rayon::prelude::*;
+use sparsh_ssl::data::Dataset;
+use sparsh_ssl::device::seeded_module;
+
+use super::probe::{Fit, FitOptions, Split, fit, force_bias};
+use super::tasks::{Head, Metric, Sample, Target, TaskKind, score};
+use crate::Error;
+
+/// Frames between the two frames of a pair (the official t − 5).
+pub const PAIR_OFFSET: usize = 5;
+
+/// Distinct frames of a [`PixelInputs`].
+enum Frames {
+    /// `[3, h, w]` 8-bit levels of (I − bg)/255 + 0.5: frames preprocessed as the encoders'
+    /// inputs (background-subtracted, portrait, the official crop).
+    Levels(Vec<Vec<u8>>),
+    /// `[h, w]` indentation −u_z (mm) on the contact grid.
+    Indentation(Vec<Vec<f32>>),
+}
+
+/// What every sample of a task reads, once per distinct frame: its frames, or its true
+/// indentation (the floor oracle's input).
+pub struct PixelInputs {
+    /// `[height, width]`.
+    pub size: [usize; 2],
+    /// Distinct frames.
+    frames: Frames,
+    /// Per sample: its frame and the frame [`PAIR_OFFSET`] before it (indices into `frames`).
+    pairs: Vec<(usize, usize)>,
+}
+
+impl PixelInputs {
+    /// Reads the frames of `samples` from the dataset in `dir` at `size`. `origin` maps the
+    /// samples' sequence indices to the dataset's (identity unless a run keeps a subset).
+    pub fn load(
+        dir: &Path,
+        samples: &[Sample],
+        origin: &[usize],
+        size: [usize; 2],
+    ) -> Result<Self, Error> {
+        let dataset = if dir.join("labels.jsonl").is_file() {
+            Dataset::load_generated(dir, size)?
+        } else {
+            crate::official::load(dir, size)?.dataset
+        };
+        let (wanted, order) = distinct_frames(samples, origin);
+        let frames = order
+            .par_iter()
+            .map(|&(s, t)| {
+                let seq = dataset.sequences.get(s).ok_or_else(|| {
+                    Error::file(dir, format!("no sequence {s} (the labels name it)"))
+                })?;
+                let src = seq
+                    .frames
+                    .get(t)
+                    .ok_or_else(|| Error::file(dir, format!("sequence {s} has no frame {t}")))?;
+                let f = src.read(size)?;
+                Ok(f.iter()
+                    .map(|&v| (v * 255.0).round().clamp(0.0, 255.0) as u8)
+                    .collect())
+            })
+            .collect::<Result<Vec<Vec<u8>>, Error>>()?;
+        Ok(Self {
+            size,
+            frames: Frames::Levels(frames),
+            pairs: pairs_of(samples, origin, &wanted),
+        })
+    }
+
+    /// Checks, before anything trains, that the dataset `dir` keeps the indentation the floor
+    /// oracles read: its first frame's field file has a `uz` channel.
+    pub fn check_indentation(dir: &Path) -> Result<(), Error> {
+        let sequences = sparsh_ssl::data::generated_sequences(dir)?;
+        let id = sequences
+            .first()
+            .and_then(|q| q.frame_ids.first())
+            .ok_or_else(|| Error::file(dir, "no frames"))?;
+        let path = dir.join("fields").join(format!("{id:06}.exr"));
+        uz_channel(&path).map(|_| ())
+    }
+
+    /// Reads the true indentation −u_z of `samples`' frames from the `fields/NNNNNN.exr` of the
+    /// dataset `dir` written by `sparsh generate` with `uz` among its fields (one-line errors
+    /// name the file otherwise), on the contact grid.
+    pub fn load_indentation(
+        dir: &Path,
+        samples: &[Sample],
+        origin: &[usize],
+    ) -> Result<Self, Error> {
+        let sequences = sparsh_ssl::data::generated_sequences(dir)?;
+        let (wanted, order) = distinct_frames(samples, origin);
+        let grids = order
+            .par_iter()
+            .map(|&(s, t)| {
+                let id = sequences
+                    .get(s)
+                    .and_then(|q| q.frame_ids.get(t))
+                    .ok_or_else(|| Error::file(dir, format!("sequence {s} has no frame {t}")))?;
+                uz_channel(&dir.join("fields").join(format!("{id:06}.exr")))
+            })
+            .collect::<Result<Vec<_>, Error>>()?;
+        let size = grids.first().map_or([0, 0], |g| g.0);
+        if let Some(k) = grids.iter().position(|g| g.0 != size) {
+            let (s, t) = order[k];
+            return Err(Error::file(
+                dir,
+                format!(
+                    "sequence {s} frame {t}: a {:?} contact grid where the first frame has \
+                     {size:?} (the floor oracle needs one grid)",
+                    grids[k].0
+                ),
+            ));
+        }
+        Ok(Self {
+            size,
+            frames: Frames::Indentation(grids.into_iter().map(|g| g.1).collect()),
+            pairs: pairs_of(samples, origin, &wanted),
+        })
+    }
+
+    /// Channels of an input: 6 for frames (I_t − bg and I_t − I_{t−5}, RGB), 2 for the
+    /// indentation (−u_z at t and its change since t − 5).
+    pub fn channels(&self) -> usize {
+        match self.frames {
+            Frames::Levels(_) => 6,
+            Frames::Indentation(_) => 2,
+        }
+    }
+
+    /// Samples held.
+    pub fn len(&self) -> usize {
+        self.pairs.len()
+    }
+
+    /// Whether no sample is held.
+    pub fn is_empty(&self) -> bool {
+        self.pairs.is_empty()
+    }
+
+    /// Sample `i`'s input, `[channels, h, w]`: (I_t − bg)/255 and (I_t − I_{t−5})/255, or
+    /// −u_z(t) and −u_z(t) + u_z(t − 5) in units of 0.1 mm (about the frames' scale).
+    pub fn input(&self, i: usize, out: &mut Vec<f32>) {
+        let (now, before) = self.pairs[i];
+        match &self.frames {
+            Frames::Levels(f) => {
+                let (a, b) = (&f[now], &f[before]);
+                out.extend(a.iter().map(|&v| (v as f32 - 127.5) / 255.0));
+                out.extend(
+                    a.iter()
+                        .zip(b)
+                        .map(|(&x, &y)| (x as f32 - y as f32) / 255.0),
+                );
+            }
+            Frames::Indentation(f) => {
+                let (a, b) = (&f[now], &f[before]);
+                out.extend(a.iter().map(|x| 10.0 * x));
+                out.extend(a.iter().zip(b).map(|(x, y)| 10.0 * (x - y)));
+            }
+        }
+    }
+
+    /// The inputs of `rows` as `[rows, 1, channels·h·w]` on `device`.
+    pub fn batch(&self, rows: &[usize], device: &Device) -> Tensor<3> {
+        let [h, w] = self.size;
+        let c = self.channels();
+        let mut x = Vec::with_capacity(rows.len() * c * h * w);
+        for &i in rows {
+            self.input(i, &mut x);
+        }
+        Tensor::<1>::from_floats(x.as_slice(), device).reshape([rows.len(), 1, c * h * w])
+    }
+
+    /// The ridge features of sample `i`: per `block` × `block` cell, the mean of each input
+    /// channel and of the absolute value of each of its two parts (the frame against the
+    /// background and against the earlier frame, summed over RGB): `(channels + 2) · ⌈h/block⌉
+    /// · ⌈w/block⌉` values.
+    pub fn block_features(&self, i: usize, block: usize) -> Vec<f64> {
+        let [h, w] = self.size;
+        let channels = self.channels();
+        let (bh, bw) = (h.div_ceil(block), w.div_ceil(block));
+        let mut x = Vec::with_capacity(channels * h * w);
+        self.input(i, &mut x);
+        let mut out = vec![0.0; (channels + 2) * bh * bw];
+        let mut count = vec![0.0; bh * bw];
+        for y in 0..h {
+            for xx in 0..w {
+                let cell = (y / block) * bw + xx / block;
+                count[cell] += 1.0;
+                for c in 0..channels {
+                    let v = x[(c * h + y) * w + xx] as f64;
+                    out[c * bh * bw + cell] += v;
+                    out[(channels + 2 * c / channels) * bh * bw + cell] += v.abs();
+                }
+            }
+        }
+        for (k, v) in out.iter_mut().enumerate() {
+            *v /= count[k % (bh * bw)];
+        }
+        out
+    }
+}
+
+/// The indentation −u_z of one field file and its `[height, width]`; a file without the
+/// channel is a one-line error saying how to keep it.
+fn uz_channel(path: &Path) -> Result<([usize; 2], Vec<f32>), Error> {
+    if !path.is_file() {
+        return Err(Error::file(
+            path,
+            "no such field file (the floor oracles read the indentation: keep \"uz\" in the \
+             scene's [output] fields and regenerate)",
+        ));
+    }
+    let c = sparsh_data::read_exr_channels(path).map_err(|e| Error::file(path, e))?;
+    let uz = c.get("uz").ok_or_else(|| {
+        Error::file(
+            path,
+            "no channel \"uz\" (the floor oracles read the indentation: add \"uz\" to the \
+             scene's [output] fields and regenerate)",
+        )
+    })?;
+    Ok(([c.height, c.width], uz.iter().map(|v| -v).collect()))
+}
+
+/// The distinct (sequence, frame) pairs `samples` read, numbered in first-use order, and that
+/// order.
+type FrameIndex = (BTreeMap<(usize, usize), usize>, Vec<(usize, usize)>);
+
+fn distinct_frames(samples: &[Sample], origin: &[usize]) -> FrameIndex {
+    let mut wanted = BTreeMap::new();
+    let mut order = Vec::new();
+    for s in samples {
+        for t in [s.frame, s.frame.saturating_sub(PAIR_OFFSET)] {
+            let key = (origin[s.sequence], t);
+            if let std::collections::btree_map::Entry::Vacant(e) = wanted.entry(key) {
+                e.insert(order.len());
+                order.push(key);
+            }
+        }
+    }
+    (wanted, order)
+}
+
+/// Each sample's (frame, frame five before) as indices into the distinct frames.
+fn pairs_of(
+    samples: &[Sample],
+    origin: &[usize],
+    wanted: &BTreeMap<(usize, usize), usize>,
+) -> Vec<(usize, usize)> {
+    samples
+        .iter()
+        .map(|s| {
+            let o = origin[s.sequence];
+            (
+                wanted[&(o, s.frame)],
+                wanted[&(o, s.frame.saturating_sub(PAIR_OFFSET))],
+            )
+        })
+        .collect()
+}
+
+/// The ridge read-out's target row of a sample: the force in N, else the head's encoded row
+/// (class-weighted one-hot rows; ΔF scaled), whose argmax per head is the class.
+fn ridge_target(head: &Head, target: &Target, classes: usize) -> Vec<f64> {
+    match target {
+        Target::Force(f) => f.to_vec(),
+        t => head.encode(t, classes).iter().map(|&v| v as f64).collect(),
+    }
+}
+
+/// A prediction from a ridge output row (see [`ridge_target`]).
+fn ridge_decode(head: &Head, out: &[f64]) -> Vec<f64> {
+    match head.kind {
+        TaskKind::Force => out.to_vec(),
+        _ => head.decode(&out.iter().map(|&v| v as f32).collect::<Vec<_>>()),
+    }
+}
+
+/// Ridge penalties tried, relative to the mean diagonal of the standardized Gram matrix.
+pub const RIDGE_LAMBDAS: [f64; 7] = [1e-4, 1e-3, 1e-2, 3e-2, 0.1, 0.3, 1.0];
+
+/// The classical read-out: ridge regression of the task's targets on [`block_features`]
+/// (standardized on the training rows, with an intercept), its penalty chosen among
+/// [`RIDGE_LAMBDAS`] on the validation rows by the task's first metric. `best_epoch` is the
+/// chosen penalty's index (from 1) and `val_curve` the validation metric per penalty.
+///
+/// [`block_features`]: PixelInputs::block_features
+pub fn fit_ridge(
+    inputs: &PixelInputs,
+    block: usize,
+    samples: &[Sample],
+    head: &Head,
+    classes: usize,
+    split: &Split,
+) -> Fit {
+    let features: Vec<Vec<f64>> = (0..inputs.len())
+        .into_par_iter()
+        .map(|i| inputs.block_features(i, block))
+        .collect();
+    let d = features[0].len();
+    let n = split.train.len();
+    let mut mean = vec![0.0; d];
+    let mut sd = vec![0.0; d];
+    for &i in &split.train {
+        for (m, v) in mean.iter_mut().zip(&features[i]) {
+            *m += v / n as f64;
+        }
+    }
+    for &i in &split.train {
+        for ((s, v), m) in sd.iter_mut().zip(&features[i]).zip(&mean) {
+            *s += (v - m).powi(2) / n as f64;
+        }
+    }
+    let sd: Vec<f64> = sd.iter().map(|v| v.sqrt().max(1e-9)).collect();
+    let z = |i: usize, j: usize| (features[i][j] - mean[j]) / sd[j];
+    let targets: Vec<Vec<f64>> = samples
+        .iter()
+        .map(|s| ridge_target(head, &s.target, classes))
+        .collect();
+    let k = targets[0].len();
+    let mut ymean = vec![0.0; k];
+    for &i in &split.train {
+        for (m, v) in ymean.iter_mut().zip(&targets[i]) {
+            *m += v / n as f64;
+        }
+    }
+    let x = Mat::<f64>::from_fn(n, d, |r, j| z(split.train[r], j));
+    let y = Mat::<f64>::from_fn(n, k, |r, c| targets[split.train[r]][c] - ymean[c]);
+    let gram = x.transpose() * &x;
+    let xty = x.transpose() * &y;
+    let scale = (0..d).map(|j| gram[(j, j)]).sum::<f64>() / d as f64;
+    let predict = |w: &Mat<f64>, rows: &[usize]| -> Vec<Vec<f64>> {
+        rows.iter()
+            .map(|&i| {
+                let out: Vec<f64> = (0..k)
+                    .map(|c| ymean[c] + (0..d).map(|j| z(i, j) * w[(j, c)]).sum::<f64>())
+                    .collect();
+                ridge_decode(head, &out)
+            })
+            .collect()
+    };
+    let metric: Metric = head.kind.metrics()[0];
+    let mut val_curve = Vec::new();
+    let mut best: Option<(f64, usize, Mat<f64>)> = None;
+    for (li, &lambda) in RIDGE_LAMBDAS.iter().enumerate() {
+        let mut a = gram.clone();
+        for j in 0..d {
+            a[(j, j)] += lambda * scale.max(1e-12);
+        }
+        let w = match a.llt(faer::Side::Lower) {
+            Ok(llt) => llt.solve(&xty),
+            Err(_) => {
+                val_curve.push(f64::NAN);
+                continue;
+            }
+        };
+        let mut preds = vec![Vec::new(); samples.len()];
+        for (&i, p) in split.val.iter().zip(predict(&w, &split.val)) {
+            preds[i] = p;
+        }
+        let value = score(metric, &split.val, &preds, samples);
+        val_curve.push(value);
+        let better = match &best {
+            None => value.is_finite(),
+            Some((b, _, _)) => {
+                value.is_finite()
+                    && if metric.higher_is_better() {
+                        value > *b
+                    } else {
+                        value < *b
+                    }
+            }
+        };
+        if better {
+            best = Some((value, li + 1, w));
+        }
+    }
+    // every penalty failed: the training mean
+    let (best_epoch, w) = best.map_or((0, Mat::zeros(d, k)), |(_, e, w)| (e, w));
+    Fit {
+        best_epoch,
+        val_curve,
+        test_preds: predict(&w, &split.test),
+        seen_preds: predict(&w, &split.seen),
+    }
+}
+
+/// Channels and strides of the ceiling CNN's 3 × 3 convolutions.
+const CNN_LAYERS: [(usize, usize); 5] = [(16, 2), (32, 2), (64, 2), (64, 1), (64, 2)];
+
+/// The supervised ceiling: a small fully convolutional network (≈ 0.1 M parameters) — five
+/// 3 × 3 convolutions with ReLU, four of stride 2 (a receptive field of 47 input pixels, about a
+/// gel thickness at 160×120), then a 1 × 1 convolution to the task's outputs at every cell,
+/// averaged over the image. The outputs are sums of local evidence, as a force is the integral
+/// of its traction over the contact: a model that cannot key on a training shape's outline.
+#[derive(Module, Debug)]
+pub struct CeilingCnn {
+    /// Convolutions.
+    pub convs: Vec<Conv2d>,
+    /// The 1 × 1 convolution to the outputs.
+    pub out: Conv2d,
+}
+
+impl CeilingCnn {
+    /// A fresh network reading `channels` input channels, with `outputs` outputs.
+    pub fn new(channels: usize, outputs: usize, device: &Device) -> Self {
+        let mut convs = Vec::new();
+        let mut cin = channels;
+        for (c, stride) in CNN_LAYERS {
+            convs.push(
+                Conv2dConfig::new([cin, c], [3, 3])
+                    .with_stride([stride, stride])
+                    .with_padding(PaddingConfig2d::Explicit(1, 1, 1, 1))
+                    .init(device),
+            );
+            cin = c;
+        }
+        Self {
+            convs,
+            out: Conv2dConfig::new([cin, outputs], [1, 1]).init(device),
+        }
+    }
+
+    /// `[n, channels, h, w]` inputs → `[n, outputs]`.
+    pub fn forward(&self, x: Tensor<4>) -> Tensor<2> {
+        let mut x = x * 4.0;
+        for conv in &self.convs {
+            x = relu(conv.forward(x));
+        }
+        let y = self.out.forward(x);
+        let [n, k, h, w] = y.dims();
+        y.reshape([n, k, h * w]).mean_dim(2).reshape([n, k])
+    }
+}
+
+/// Trains the ceiling CNN (or, on the indentation, the floor oracle) on the training rows'
+/// inputs and labels (AdamW, half-cosine), the epoch scored on test chosen on validation; the
+/// network is drawn on the CPU under `opts.seed`, its force outputs starting at the training
+/// mean ([`Head::force_bias`]).
+pub fn fit_ceiling(
+    inputs: &PixelInputs,
+    samples: &[Sample],
+    head: &Head,
+    classes: usize,
+    split: &Split,
+    opts: FitOptions,
+    device: &Device,
+) -> Fit {
+    let cpu = Device::flex().autodiff();
+    let mut model = seeded_module(&cpu, opts.seed, || {
+        CeilingCnn::new(inputs.channels(), head.outputs(classes), &cpu)
+    });
+    if let Some(bias) = force_bias(head, &cpu) {
+        model.out.bias = Some(bias);
+    }
+    let ([h, w], c) = (inputs.size, inputs.channels());
+    let input = |rows: &[usize], device: &Device| inputs.batch(rows, device);
+    let forward = move |m: &CeilingCnn, x: Tensor<3>| {
+        let [n, _, _] = x.dims();
+        m.forward(x.reshape([n, c, h, w]))
+    };
+    fit(
+        model, &input, &forward, samples, head, classes, split, opts, device,
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use sparsh_ssl::rng::Rng;
+
+    /// `n` indentation maps of `size` holding one disc each (random centre, radius and depth),
+    /// their force a known function of the map: `[0, 0, k · volume]`, the integral of the
+    /// indentation (as a layer's normal force is, to first order, linear in it).
+    fn discs(n: usize, size: [usize; 2], seed: u64) -> (PixelInputs, Vec<Sample>) {
+        let mut rng = Rng::new(seed);
+        let [h, w] = size;
+        let mut grids = Vec::with_capacity(n);
+        let mut samples = Vec::with_capacity(n);
+        for i in 0..n {
+            let (cy, cx) = (
+                rng.range_f64(6.0, h as f64 - 6.0),
+                rng.range_f64(6.0, w as f64 - 6.0),
+            );
+            let (r, depth) = (rng.range_f64(1.5, 5.0), rng.range_f64(0.1, 0.8));
+            let g: Vec<f32> = (0..h * w)
+                .map(|k| {
+                    let (y, x) = ((k / w) as f64 + 0.5, (k % w) as f64 + 0.5);
+                    let d2 = (y - cy).powi(2) + (x - cx).powi(2);
+                    (depth * (1.0 - d2 / (r * r)).max(0.0)) as f32
+                })
+                .collect();
+            let volume: f64 = g.iter().map(|&v| v as f64).sum();
+            grids.push(g);
+            samples.push(Sample {
+                sequence: i / 4,
+                frame: i % 4,
+                target: Target::Force([0.0, 0.0, 0.05 * volume]),
+            });
+        }
+        let inputs = PixelInputs {
+            size,
+            frames: Frames::Indentation(grids),
+            pairs: (0..n).map(|i| (i, i)).collect(),
+        };
+        (inputs, samples)
+    }
+
+    fn split(n: usize) -> Split {
+        let rows: Vec<usize> = (0..n).collect();
+        Split {
+            train: rows.iter().copied().filter(|i| i % 5 < 3).collect(),
+            val: rows.iter().copied().filter(|i| i % 5 == 3).collect(),
+            test: rows.iter().copied().filter(|i| i % 5 == 4).collect(),
+            seen: Vec::new(),
+        }
+    }
+
+    fn rmse(fit: &Fit, samples: &[Sample], split: &Split) -> f64 {
+        let mut preds = vec![Vec::new(); samples.len()];
+        for (&i, p) in split.test.iter().zip(&fit.test_preds) {
+            preds[i] = p.clone();
+        }
+        score(Metric::RmseMn, &split.test, &preds, samples)
+    }
+
+    /// The training mean's test RMSE (what learns nothing).
+    fn constant_rmse(samples: &[Sample], split: &Split) -> f64 {
+        let mut m = [0.0; 3];
+        for &i in &split.train {
+            if let Target::Force(f) = samples[i].target {
+                (0..3).for_each(|k| m[k] += f[k] / split.train.len() as f64);
+            }
+        }
+        let preds = vec![m.to_vec(); samples.len()];
+        score(Metric::RmseMn, &split.test, &preds, samples)
+    }
+
+    #[test]
+    fn ridge_recovers_a_force_linear_in_the_block_means() {
+        // the volume is the sum of the block means times the block area: exactly linear in the
+        // features, so the ridge's error is the penalty's bias alone
+        let (inputs, samples) = discs(300, [24, 32], 1);
+        let split = split(samples.len());
+        let refs: Vec<&Sample> = split.train.iter().map(|&i| &samples[i]).collect();
+        let head = Head::new(TaskKind::Force, 0, [4.0, 4.0, 5.0], &refs);
+        let fit = fit_ridge(&inputs, 8, &samples, &head, 0, &split);
+        let (read, mean) = (
+            rmse(&fit, &samples, &split),
+            constant_rmse(&samples, &split),
+        );
+        assert!(read < 0.05 * mean, "ridge {read} mN vs the mean's {mean}");
+        // the chosen penalty is the best on validation
+        let best = fit.val_curve.iter().copied().fold(f64::INFINITY, f64::min);
+        assert_eq!(fit.val_curve[fit.best_epoch - 1], best);
+        assert_eq!(fit.val_curve.len(), RIDGE_LAMBDAS.len());
+    }
+
+    #[test]
+    fn the_ceiling_cnn_learns_a_force_from_indentation_maps() {
+        let (inputs, samples) = discs(400, [24, 32], 2);
+        let split = split(samples.len());
+        let refs: Vec<&Sample> = split.train.iter().map(|&i| &samples[i]).collect();
+        let head = Head::new(TaskKind::Force, 0, [4.0, 4.0, 5.0], &refs);
+        let opts = FitOptions {
+            epochs: 30,
+            batch_size: 16,
+            lr: 3e-3,
+            seed: 4,
+            patience: 0,
+        };
+        let fit = fit_ceiling(&inputs, &samples, &head, 0, &split, opts, &Device::flex());
+        let (read, mean) = (
+            rmse(&fit, &samples, &split),
+            constant_rmse(&samples, &split),
+        );
+        assert!(read < 0.35 * mean, "CNN {read} mN vs the mean's {mean}");
+        let best = fit.val_curve.iter().copied().fold(f64::INFINITY, f64::min);
+        assert_eq!(fit.val_curve[fit.best_epoch - 1], best);
+    }
+
+    #[test]
+    fn patience_stops_a_fit_that_no_longer_improves() {
+        // labels that are noise: validation stops improving early, and the fit stops
+        // `patience` epochs after its best
+        let (inputs, mut samples) = discs(100, [16, 16], 3);
+        let mut rng = Rng::new(9);
+        for s in &mut samples {
+            s.target = Target::Force([0.0, 0.0, rng.range_f64(0.0, 2.0)]);
+        }
+        let split = split(samples.len());
+        let refs: Vec<&Sample> = split.train.iter().map(|&i| &samples[i]).collect();
+        let head = Head::new(TaskKind::Force, 0, [4.0, 4.0, 5.0], &refs);
+        let opts = FitOptions {
+            epochs: 60,
+            batch_size: 16,
+            lr: 3e-3,
+            seed: 1,
+            patience: 3,
+        };
+        let fit = fit_ceiling(&inputs, &samples, &head, 0, &split, opts, &Device::flex());
+        assert_eq!(
+            fit.val_curve.len(),
+            fit.best_epoch + 3,
+            "{:?}",
+            fit.val_curve
+        );
+    }
+
+    #[test]
+    fn block_features_average_each_channel_and_its_magnitude() {
+        // one 2 × 4 indentation map, blocks of 2: cells [[1, -3], [2, 2]] and [[0, 4], [0, 0]]
+        let inputs = PixelInputs {
+            size: [2, 4],
+            frames: Frames::Indentation(vec![vec![1.0, -3.0, 0.0, 4.0, 2.0, 2.0, 0.0, 0.0]]),
+            pairs: vec![(0, 0)],
+        };
+        let f = inputs.block_features(0, 2);
+        // channel 0 (the map in 0.1 mm), channel 1 (its change: 0), |channel 0|, |channel 1|
+        assert_eq!(f, vec![5.0, 10.0, 0.0, 0.0, 20.0, 10.0, 0.0, 0.0]);
+    }
+}
