@@ -69,7 +69,7 @@ fn config(tasks: &[(&str, &str)], budgets: &str) -> String {
         "seed = 3\nbudgets = {budgets}\nbootstrap = 50\n[probe]\nepochs = 2\n\
          [[encoder]]\nname = \"weights\"\nrecipe = \"recipe.toml\"\nweights = \"weights.safetensors\"\n\
          [[random]]\nname = \"random\"\nrecipe = \"recipe.toml\"\ndraws = 2\n\
-         [baselines]\nrecipe = \"recipe.toml\"\nceiling = true\noracle = true\npixel_size = [32, 24]\n"
+         [baselines]\nrecipe = \"recipe.toml\"\nceiling = true\noracle = true\npixel_size = [32, 24]\nceiling_epochs = 3\n"
     );
     for (kind, data) in tasks {
         s += &format!("[[task]]\nkind = \"{kind}\"\ndata = \"{data}\"\nframe_stride = 2\n");
@@ -540,9 +540,9 @@ fn worst(a: &serde_json::Value, b: &serde_json::Value) -> f64 {
 }
 
 /// `--device wgpu` (Mesa's lavapipe here, a software Vulkan driver) records the CPU's units
-/// for every kind of row (pretrained and random encoders, raw patches, end to end): each
-/// encoder and head drawn on the CPU under its seed and moved, so the runs differ only by
-/// floating-point rounding.
+/// for every kind of row (pretrained and random encoders, raw patches, end to end, the ridge,
+/// the ceiling CNN and the floor oracles): each encoder and head drawn on the CPU under its seed
+/// and moved, so the runs differ only by floating-point rounding.
 #[test]
 fn tacbench_on_wgpu_records_the_cpu_units() {
     if !wgpu_or_skip() {
@@ -582,7 +582,8 @@ fn tacbench_on_wgpu_records_the_cpu_units() {
     let (cpu, gpu) = (run_on("cpu"), run_on("wgpu"));
     let units = json_files(&cpu.join("units"));
     assert_eq!(units, json_files(&gpu.join("units")));
-    assert_eq!(units.len(), 3, "3 encoders × 1 budget: {units:?}");
+    // the random draw, raw patches, end to end, ridge, the ceiling and the two floor oracles
+    assert_eq!(units.len(), 7, "7 rows × 1 budget: {units:?}");
     let read = |dir: &Path, unit: &Path| -> serde_json::Value {
         serde_json::from_str(&std::fs::read_to_string(dir.join("units").join(unit)).unwrap())
             .unwrap()

@@ -422,8 +422,9 @@ enum Command {
     },
     /// TacBench: frozen encoders read out by the attentive probe on force, slip, pose,
     /// texture and grasp tasks at label budgets, against random draws of the same
-    /// architecture, the probe on raw patches, the same ViT trained end to end and a constant
-    /// predictor; writes results.csv, results.md and a chart per task.
+    /// architecture, the probe on raw patches, the same ViT trained end to end, a constant
+    /// predictor, a ridge read-out of the frames, a supervised CNN (the ceiling) and the floor
+    /// oracles on the true indentation; writes results.csv, results.md and a chart per task.
     Tacbench {
         /// Benchmark config (TOML, e.g. tacbench/cpu_small.toml); its paths are relative to it.
         #[arg(long)]
