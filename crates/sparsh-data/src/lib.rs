@@ -18,10 +18,12 @@
 #![warn(missing_docs)]
 
 mod exr_io;
+mod official;
 pub mod sparsh_pkl;
 mod writer;
 
 pub use exr_io::{ExrChannels, MAX_EXR_SAMPLES, read_exr_channels, write_exr_channels};
+pub use official::{official_crop, official_resize, preprocess, subtract_background};
 pub use writer::{
     Dataset, Identity, Label, Manifest, OpenMode, PoseLabel, Problem, SequencePart, ShardLayout,
     check_part, encode_png, read_identity, read_manifest, read_shard_layout, verify, write_atomic,
