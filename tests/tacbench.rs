@@ -487,6 +487,13 @@ fn bad_tacbench_configs_fail_on_one_line() {
             );
         assert_user_error(&run(key, &text), &format!("baselines.{key}"));
     }
+    // the photometric read-out at a pixel size that is not the contact grid turned
+    let photometric = config(&[("force", "data")], "[1.0]").replacen(
+        "oracle = true\n",
+        "oracle = true\nphotometric = true\n",
+        1,
+    );
+    assert_user_error(&run("photometric", &photometric), "turned to portrait");
     // the floor oracle on data without the indentation field
     let no_uz = tmp.path().join("no_uz");
     let scene = tmp.path().join("no_uz.toml");

@@ -95,6 +95,12 @@ pub struct BaselineConfig {
     /// indentation −u_z (needs `uz` among the dataset's fields; default off).
     #[serde(default)]
     pub oracle: bool,
+    /// Train the classical GelSight read-out: the floor oracle's ridge on the indentation the
+    /// frames show, by a slope lookup calibrated on the training frames' true indentation and
+    /// integrated (needs `uz`, and `pixel_size` the contact grid turned to portrait; default
+    /// off).
+    #[serde(default)]
+    pub photometric: bool,
     /// `[height, width]` the ridge and the ceiling read the frames at (default 160×120).
     #[serde(default = "pixel_size")]
     pub pixel_size: [usize; 2],
@@ -347,6 +353,7 @@ impl BenchConfig {
             "supervised-cnn",
             "floor-cnn",
             "floor-ridge",
+            "photometric-ridge",
         ]
         .map(String::from)
         .into();
@@ -367,7 +374,7 @@ impl BenchConfig {
                 return bad(
                     &format!("encoder[{i}].name"),
                     format!(
-                        "`{}` is taken (names are unique; pixels, end-to-end, ridge, supervised-cnn, floor-cnn, floor-ridge and constant are the baselines')",
+                        "`{}` is taken (names are unique; pixels, end-to-end, ridge, supervised-cnn, floor-cnn, floor-ridge, photometric-ridge and constant are the baselines')",
                         e.name
                     ),
                 );

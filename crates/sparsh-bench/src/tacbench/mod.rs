@@ -15,6 +15,7 @@
 //! - [`run`]: the benchmark loop with resume.
 
 pub mod config;
+pub mod photometric;
 pub mod pixels;
 pub mod probe;
 pub mod report;

@@ -27,6 +27,7 @@ use rayon::prelude::*;
 use sparsh_ssl::data::Dataset;
 use sparsh_ssl::device::seeded_module;
 
+use super::photometric::{Integrator, SlopeLookup, slopes};
 use super::probe::{Fit, FitOptions, Split, fit, force_bias};
 use super::tasks::{Head, Metric, Sample, Target, TaskKind, score};
 use crate::Error;
@@ -52,6 +53,11 @@ pub struct PixelInputs {
     frames: Frames,
     /// Per sample: its frame and the frame [`PAIR_OFFSET`] before it (indices into `frames`).
     pairs: Vec<(usize, usize)>,
+    /// Per distinct frame, its sequence's light level per colour channel: the mean of the
+    /// sequence's background over the mean of every background (the scenes draw each LED's
+    /// intensity per sequence, and I − bg scales with it); empty where the dataset keeps no
+    /// backgrounds (official layouts) or for the indentation.
+    gains: Vec<[f64; 3]>,
 }
 
 impl PixelInputs {
@@ -89,19 +95,21 @@ impl PixelInputs {
             size,
             frames: Frames::Levels(frames),
             pairs: pairs_of(samples, origin, &wanted),
+            gains: light_levels(dir, &order)?,
         })
     }
 
     /// Checks, before anything trains, that the dataset `dir` keeps the indentation the floor
-    /// oracles read: its first frame's field file has a `uz` channel.
-    pub fn check_indentation(dir: &Path) -> Result<(), Error> {
+    /// oracles read: its first frame's field file has a `uz` channel. Returns the contact
+    /// grid's `[rows, columns]`.
+    pub fn check_indentation(dir: &Path) -> Result<[usize; 2], Error> {
         let sequences = sparsh_ssl::data::generated_sequences(dir)?;
         let id = sequences
             .first()
             .and_then(|q| q.frame_ids.first())
             .ok_or_else(|| Error::file(dir, "no frames"))?;
         let path = dir.join("fields").join(format!("{id:06}.exr"));
-        uz_channel(&path).map(|_| ())
+        uz_channel(&path).map(|(size, _)| size)
     }
 
     /// Reads the true indentation −u_z of `samples`' frames from the `fields/NNNNNN.exr` of the
@@ -140,6 +148,7 @@ impl PixelInputs {
             size,
             frames: Frames::Indentation(grids.into_iter().map(|g| g.1).collect()),
             pairs: pairs_of(samples, origin, &wanted),
+            gains: Vec::new(),
         })
     }
 
@@ -223,6 +232,125 @@ impl PixelInputs {
         }
         out
     }
+}
+
+impl PixelInputs {
+    /// The classical height read-out's input ([`super::photometric`]): the indentation these
+    /// frames show, estimated by a slope lookup calibrated on the frames of the samples `train`
+    /// against `truth` (the same samples' true indentation), integrated to a height map on the
+    /// contact grid. The frames are portrait (the official turn), the contact grid landscape:
+    /// `pixel_size` must be the grid turned, `[columns, rows]`.
+    pub fn photometric(&self, truth: &PixelInputs, train: &[usize]) -> Result<PixelInputs, String> {
+        let (Frames::Levels(levels), Frames::Indentation(depth)) = (&self.frames, &truth.frames)
+        else {
+            return Err("the photometric read-out needs frames and the true indentation".into());
+        };
+        let [h, w] = self.size;
+        let [rows, cols] = truth.size;
+        if (h, w) != (cols, rows) {
+            return Err(format!(
+                "pixel_size {:?} must be the contact grid {:?} turned to portrait, [{cols}, {rows}] \
+                 (the photometric read-out matches each frame pixel to a contact cell)",
+                self.size, truth.size
+            ));
+        }
+        if self.pairs != truth.pairs {
+            return Err("frames and indentation of different samples".into());
+        }
+        // the colour change at landscape cell (r, c): portrait pixel (c, rows − 1 − r)
+        // divided by the frame's light level, where the dataset keeps its backgrounds, with
+        // the cell's position in [−1, 1]²
+        let colour = |k: usize, r: usize, c: usize| -> ([f64; 3], [f64; 2]) {
+            let (y, x) = (c, rows - 1 - r);
+            let gain = self.gains.get(k).copied().unwrap_or([1.0; 3]);
+            let change = std::array::from_fn(|ch| {
+                (levels[k][(ch * h + y) * w + x] as f64 - 127.5) / 255.0 / gain[ch]
+            });
+            let position = [
+                2.0 * c as f64 / cols as f64 - 1.0,
+                2.0 * r as f64 / rows as f64 - 1.0,
+            ];
+            (change, position)
+        };
+        // calibration: both frames of the training samples, at most 600 of them, every second
+        // cell each way
+        let mut frames: Vec<usize> = train
+            .iter()
+            .flat_map(|&i| [self.pairs[i].0, self.pairs[i].1])
+            .collect();
+        frames.sort_unstable();
+        frames.dedup();
+        let step = frames.len().div_ceil(600).max(1);
+        let chosen: Vec<usize> = frames.into_iter().step_by(step).collect();
+        type Calibration = (([f64; 3], [f64; 2]), [f64; 2]);
+        let samples: Vec<Vec<Calibration>> = chosen
+            .par_iter()
+            .map(|&f| {
+                let (gx, gy) = slopes(&depth[f], rows, cols);
+                (0..rows)
+                    .step_by(2)
+                    .flat_map(|r| (0..cols).step_by(2).map(move |c| (r, c)))
+                    .map(|(r, c)| (colour(f, r, c), [gx[r * cols + c], gy[r * cols + c]]))
+                    .collect()
+            })
+            .collect();
+        let lookup = SlopeLookup::fit(samples.into_iter().flatten());
+        let integrator = Integrator::new(rows, cols);
+        let estimated = (0..levels.len())
+            .into_par_iter()
+            .map(|k| {
+                let mut gx = vec![0.0; rows * cols];
+                let mut gy = vec![0.0; rows * cols];
+                for r in 0..rows {
+                    for c in 0..cols {
+                        let (change, position) = colour(k, r, c);
+                        [gx[r * cols + c], gy[r * cols + c]] = lookup.slope(change, position);
+                    }
+                }
+                integrator.integrate(&gx, &gy)
+            })
+            .collect();
+        Ok(PixelInputs {
+            size: truth.size,
+            frames: Frames::Indentation(estimated),
+            pairs: self.pairs.clone(),
+            gains: Vec::new(),
+        })
+    }
+}
+
+/// Each distinct frame's light level per channel (see [`PixelInputs`]'s `gains`): the mean of
+/// its sequence's background over the mean of all the sequences' backgrounds; empty for a
+/// dataset without background files (the official layouts).
+fn light_levels(dir: &Path, order: &[(usize, usize)]) -> Result<Vec<[f64; 3]>, Error> {
+    if !dir.join("labels.jsonl").is_file() {
+        return Ok(Vec::new());
+    }
+    let sequences = sparsh_ssl::data::generated_sequences(dir)?;
+    let means = sequences
+        .par_iter()
+        .map(|q| {
+            let bg = sparsh_ssl::data::read_image(&q.background)?;
+            let n = (bg.width() * bg.height()) as f64;
+            let mut m = [0.0; 3];
+            for p in bg.pixels() {
+                (0..3).for_each(|c| m[c] += p.0[c] as f64 / n);
+            }
+            Ok(m)
+        })
+        .collect::<Result<Vec<[f64; 3]>, Error>>()?;
+    let all: [f64; 3] = std::array::from_fn(|c| {
+        means.iter().map(|m| m[c]).sum::<f64>() / means.len().max(1) as f64
+    });
+    order
+        .iter()
+        .map(|&(s, _)| {
+            let m = means
+                .get(s)
+                .ok_or_else(|| Error::file(dir, format!("no sequence {s} (the labels name it)")))?;
+            Ok(std::array::from_fn(|c| (m[c] / all[c].max(1e-9)).max(1e-3)))
+        })
+        .collect()
 }
 
 /// The indentation −u_z of one field file and its `[height, width]`; a file without the
@@ -526,6 +654,7 @@ mod tests {
             size,
             frames: Frames::Indentation(grids),
             pairs: (0..n).map(|i| (i, i)).collect(),
+            gains: Vec::new(),
         };
         (inputs, samples)
     }
@@ -578,6 +707,88 @@ mod tests {
         let best = fit.val_curve.iter().copied().fold(f64::INFINITY, f64::min);
         assert_eq!(fit.val_curve[fit.best_epoch - 1], best);
         assert_eq!(fit.val_curve.len(), RIDGE_LAMBDAS.len());
+    }
+
+    /// Frames shaded from the indentation maps' slopes by a known linear lookup, 8-bit and
+    /// turned to portrait clockwise as the official preprocessing turns them: the photometric
+    /// read-out's height must be the true one, and its ridge must read the force as the floor
+    /// ridge does (a wrong turn or a swapped slope would leave a map unrelated to the truth).
+    #[test]
+    fn photometric_heights_recover_the_indentation_a_shading_shows() {
+        let (truth, samples) = discs(300, [24, 32], 5);
+        let [rows, cols] = truth.size;
+        let Frames::Indentation(grids) = &truth.frames else {
+            unreachable!()
+        };
+        let levels: Vec<Vec<u8>> = grids
+            .iter()
+            .map(|g| {
+                let (gx, gy) = slopes(g, rows, cols);
+                let mut f = vec![0u8; 3 * cols * rows];
+                // landscape (r, c) is portrait (y = c, x = rows − 1 − r) after a clockwise turn
+                for r in 0..rows {
+                    for c in 0..cols {
+                        let (sx, sy) = (gx[r * cols + c], gy[r * cols + c]);
+                        let shade = [
+                            0.3 * sx + 0.1 * sy,
+                            -0.2 * sx + 0.25 * sy,
+                            0.05 * sx - 0.3 * sy,
+                        ];
+                        for (ch, v) in shade.iter().enumerate() {
+                            let (y, x) = (c, rows - 1 - r);
+                            f[(ch * cols + y) * rows + x] =
+                                (127.5 + 255.0 * v).round().clamp(0.0, 255.0) as u8;
+                        }
+                    }
+                }
+                f
+            })
+            .collect();
+        let frames = PixelInputs {
+            size: [cols, rows],
+            frames: Frames::Levels(levels),
+            pairs: truth.pairs.clone(),
+            gains: Vec::new(),
+        };
+        let split = split(samples.len());
+        let Ok(estimated) = frames.photometric(&truth, &split.train) else {
+            panic!("the frames are the grid turned")
+        };
+        let Frames::Indentation(heights) = &estimated.frames else {
+            unreachable!()
+        };
+        let (mut err, mut norm) = (0.0, 0.0);
+        for (e, t) in heights.iter().zip(grids) {
+            for (a, b) in e.iter().zip(t) {
+                err += ((a - b) as f64).powi(2);
+                norm += (*b as f64).powi(2);
+            }
+        }
+        let relative = (err / norm).sqrt();
+        assert!(
+            relative < 0.2,
+            "height error {relative} of the true indentation's norm"
+        );
+        let refs: Vec<&Sample> = split.train.iter().map(|&i| &samples[i]).collect();
+        let head = Head::new(TaskKind::Force, 0, [4.0, 4.0, 5.0], &refs);
+        let fit = fit_ridge(&estimated, 8, &samples, &head, 0, &split);
+        let (read, mean) = (
+            rmse(&fit, &samples, &split),
+            constant_rmse(&samples, &split),
+        );
+        assert!(
+            read < 0.15 * mean,
+            "photometric ridge {read} mN vs the mean's {mean}"
+        );
+        // the frames must be the contact grid turned
+        let unturned = PixelInputs {
+            size: [rows, cols],
+            ..frames
+        };
+        let Err(err) = unturned.photometric(&truth, &split.train) else {
+            panic!("frames not turned must be refused")
+        };
+        assert!(err.contains("turned to portrait"), "{err}");
     }
 
     #[test]
@@ -638,6 +849,7 @@ mod tests {
             size: [2, 4],
             frames: Frames::Indentation(vec![vec![1.0, -3.0, 0.0, 4.0, 2.0, 2.0, 0.0, 0.0]]),
             pairs: vec![(0, 0)],
+            gains: Vec::new(),
         };
         let f = inputs.block_features(0, 2);
         // channel 0 (the map in 0.1 mm), channel 1 (its change: 0), |channel 0|, |channel 1|

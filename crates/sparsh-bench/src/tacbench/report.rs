@@ -61,7 +61,7 @@ fn kind_name(k: EncoderKind) -> &'static str {
         EncoderKind::Random => "random",
         EncoderKind::Pixels => "pixels",
         EncoderKind::EndToEnd => "end_to_end",
-        EncoderKind::Ridge => "ridge",
+        EncoderKind::Ridge | EncoderKind::Photometric => "ridge",
         EncoderKind::Ceiling => "ceiling",
         EncoderKind::Oracle | EncoderKind::OracleRidge => "floor",
     }

@@ -43,6 +43,9 @@ pub enum EncoderKind {
     Oracle,
     /// The floor oracle's linear read-out: the ridge on the true indentation.
     OracleRidge,
+    /// The classical GelSight read-out: the floor oracle's ridge on the indentation the frames
+    /// show, by a calibrated slope lookup and integration ([`super::photometric`]).
+    Photometric,
 }
 
 /// One finished (task, encoder, budget, seed): what the report is made from.
@@ -346,6 +349,7 @@ pub fn encoders(
             (b.ceiling, "supervised-cnn", EncoderKind::Ceiling),
             (b.oracle, "floor-cnn", EncoderKind::Oracle),
             (b.oracle, "floor-ridge", EncoderKind::OracleRidge),
+            (b.photometric, "photometric-ridge", EncoderKind::Photometric),
         ] {
             if on {
                 out.push(EncoderEntry {
@@ -500,8 +504,20 @@ pub fn run(
             )
         })?;
         let classes = tr.samples.classes.len();
-        if cfg.baselines.as_ref().is_some_and(|b| b.oracle) && !opts.report_only {
-            PixelInputs::check_indentation(&task.data)?;
+        if let Some(b) = cfg.baselines.as_ref().filter(|b| b.oracle || b.photometric)
+            && !opts.report_only
+        {
+            let [rows, cols] = PixelInputs::check_indentation(&task.data)?;
+            if b.photometric && b.pixel_size != [cols, rows] {
+                return Err(Error::file(
+                    &task.data,
+                    format!(
+                        "baselines.pixel_size {:?} must be the contact grid ({rows} × {cols} \
+                         cells) turned to portrait, [{cols}, {rows}], for photometric = true",
+                        b.pixel_size
+                    ),
+                ));
+            }
         }
         let mut pixels: Option<PixelInputs> = None;
         let mut indentation: Option<PixelInputs> = None;
@@ -534,7 +550,11 @@ pub fn run(
                 continue;
             }
             let b = cfg.baselines.as_ref();
-            if matches!(enc.kind, EncoderKind::Ridge | EncoderKind::Ceiling) && pixels.is_none() {
+            let framed = matches!(
+                enc.kind,
+                EncoderKind::Ridge | EncoderKind::Ceiling | EncoderKind::Photometric
+            );
+            if framed && pixels.is_none() {
                 let size = b.expect("pixel read-outs come from [baselines]").pixel_size;
                 pixels = Some(PixelInputs::load(
                     &task.data,
@@ -543,7 +563,10 @@ pub fn run(
                     size,
                 )?);
             }
-            let oracle = matches!(enc.kind, EncoderKind::Oracle | EncoderKind::OracleRidge);
+            let oracle = matches!(
+                enc.kind,
+                EncoderKind::Oracle | EncoderKind::OracleRidge | EncoderKind::Photometric
+            );
             if oracle && indentation.is_none() {
                 indentation = Some(PixelInputs::load_indentation(
                     &task.data,
@@ -596,7 +619,8 @@ pub fn run(
                 | EncoderKind::Ridge
                 | EncoderKind::Ceiling
                 | EncoderKind::Oracle
-                | EncoderKind::OracleRidge => None,
+                | EncoderKind::OracleRidge
+                | EncoderKind::Photometric => None,
             };
             if let Some(t) = &mut tokens {
                 t.standardize(&tr.pool);
@@ -613,25 +637,40 @@ pub fn run(
                 let train_refs: Vec<_> = train.iter().map(|&i| &tr.samples.samples[i]).collect();
                 let head = Head::new(task.kind, classes, task.force_scale_n, &train_refs);
                 let fit_seed = cfg.seed.wrapping_mul(1_000_003).wrapping_add(seed);
-                let pixel_fit = |kind: EncoderKind| -> Fit {
+                let pixel_fit = |kind: EncoderKind| -> Result<Fit, Error> {
+                    let b = b.expect("pixel read-outs come from [baselines]");
+                    if kind == EncoderKind::Photometric {
+                        let frames = pixels.as_ref().expect("loaded above");
+                        let truth = indentation.as_ref().expect("loaded above");
+                        let estimated = frames
+                            .photometric(truth, &split.train)
+                            .map_err(|e| Error::file(&task.data, e))?;
+                        return Ok(fit_ridge(
+                            &estimated,
+                            b.ridge_block,
+                            &tr.samples.samples,
+                            &head,
+                            classes,
+                            &split,
+                        ));
+                    }
                     let p = if matches!(kind, EncoderKind::Oracle | EncoderKind::OracleRidge) {
                         indentation.as_ref()
                     } else {
                         pixels.as_ref()
                     }
                     .expect("loaded above");
-                    let b = b.expect("pixel read-outs come from [baselines]");
                     if matches!(kind, EncoderKind::Ridge | EncoderKind::OracleRidge) {
-                        return fit_ridge(
+                        return Ok(fit_ridge(
                             p,
                             b.ridge_block,
                             &tr.samples.samples,
                             &head,
                             classes,
                             &split,
-                        );
+                        ));
                     }
-                    fit_ceiling(
+                    Ok(fit_ceiling(
                         p,
                         &tr.samples.samples,
                         &head,
@@ -651,7 +690,7 @@ pub fn run(
                             },
                         },
                         &opts.device,
-                    )
+                    ))
                 };
                 let fit: Fit = match (&tokens, enc.kind) {
                     (
@@ -659,8 +698,9 @@ pub fn run(
                         EncoderKind::Ridge
                         | EncoderKind::Ceiling
                         | EncoderKind::Oracle
-                        | EncoderKind::OracleRidge,
-                    ) => pixel_fit(enc.kind),
+                        | EncoderKind::OracleRidge
+                        | EncoderKind::Photometric,
+                    ) => pixel_fit(enc.kind)?,
                     (Some(t), _) => fit_frozen(
                         t,
                         &tr.samples.samples,
