@@ -17,8 +17,8 @@ use std::collections::BTreeMap;
 use std::path::Path;
 
 use burn::module::Module;
-use burn::nn::PaddingConfig2d;
 use burn::nn::conv::{Conv2d, Conv2dConfig};
+use burn::nn::{Linear, LinearConfig, PaddingConfig2d};
 use burn::prelude::*;
 use burn::tensor::activation::relu;
 use faer::Mat;
@@ -542,20 +542,26 @@ const CNN_LAYERS: [(usize, usize); 5] = [(16, 2), (32, 2), (64, 2), (64, 1), (64
 
 /// The supervised ceiling: a small fully convolutional network (≈ 0.1 M parameters) — five
 /// 3 × 3 convolutions with ReLU, four of stride 2 (a receptive field of 47 input pixels, about a
-/// gel thickness at 160×120), then a 1 × 1 convolution to the task's outputs at every cell,
-/// averaged over the image. The outputs are sums of local evidence, as a force is the integral
-/// of its traction over the contact: a model that cannot key on a training shape's outline.
+/// gel thickness at 160×120), then a head. For force, a 1 × 1 convolution to the outputs at
+/// every cell, averaged over the image: sums of local evidence, as a force is the integral of
+/// its traction over the contact, a model that cannot key on a training shape's outline. For the
+/// classification tasks (slip, pose, texture, grasp) the last features' mean and maximum over
+/// the image, then a linear layer: a class — the slip cone's ratio of two integrals — is not a
+/// sum of local evidence.
 #[derive(Module, Debug)]
 pub struct CeilingCnn {
     /// Convolutions.
     pub convs: Vec<Conv2d>,
-    /// The 1 × 1 convolution to the outputs.
-    pub out: Conv2d,
+    /// The force head: the 1 × 1 convolution to the outputs, averaged.
+    pub out: Option<Conv2d>,
+    /// The classification head: mean- and max-pooled features to the outputs.
+    pub pooled: Option<Linear>,
 }
 
 impl CeilingCnn {
-    /// A fresh network reading `channels` input channels, with `outputs` outputs.
-    pub fn new(channels: usize, outputs: usize, device: &Device) -> Self {
+    /// A fresh network reading `channels` input channels, with `outputs` outputs, summing local
+    /// evidence (`additive`, for force) or pooling features.
+    pub fn new(channels: usize, outputs: usize, additive: bool, device: &Device) -> Self {
         let mut convs = Vec::new();
         let mut cin = channels;
         for (c, stride) in CNN_LAYERS {
@@ -567,10 +573,15 @@ impl CeilingCnn {
             );
             cin = c;
         }
-        Self {
-            convs,
-            out: Conv2dConfig::new([cin, outputs], [1, 1]).init(device),
-        }
+        let (out, pooled) = if additive {
+            (
+                Some(Conv2dConfig::new([cin, outputs], [1, 1]).init(device)),
+                None,
+            )
+        } else {
+            (None, Some(LinearConfig::new(2 * cin, outputs).init(device)))
+        };
+        Self { convs, out, pooled }
     }
 
     /// `[n, channels, h, w]` inputs → `[n, outputs]`.
@@ -579,7 +590,14 @@ impl CeilingCnn {
         for conv in &self.convs {
             x = relu(conv.forward(x));
         }
-        let y = self.out.forward(x);
+        let [n, c, h, w] = x.dims();
+        if let Some(linear) = &self.pooled {
+            let cells = x.reshape([n, c, h * w]);
+            let mean = cells.clone().mean_dim(2).reshape([n, c]);
+            let max = cells.max_dim(2).reshape([n, c]);
+            return linear.forward(Tensor::cat(vec![mean, max], 1));
+        }
+        let y = self.out.as_ref().expect("a head").forward(x);
         let [n, k, h, w] = y.dims();
         y.reshape([n, k, h * w]).mean_dim(2).reshape([n, k])
     }
@@ -600,10 +618,11 @@ pub fn fit_ceiling(
 ) -> Fit {
     let cpu = Device::flex().autodiff();
     let mut model = seeded_module(&cpu, opts.seed, || {
-        CeilingCnn::new(inputs.channels(), head.outputs(classes), &cpu)
+        let additive = head.kind == TaskKind::Force;
+        CeilingCnn::new(inputs.channels(), head.outputs(classes), additive, &cpu)
     });
-    if let Some(bias) = force_bias(head, &cpu) {
-        model.out.bias = Some(bias);
+    if let (Some(bias), Some(out)) = (force_bias(head, &cpu), model.out.as_mut()) {
+        out.bias = Some(bias);
     }
     let ([h, w], c) = (inputs.size, inputs.channels());
     let input = |rows: &[usize], device: &Device| inputs.batch(rows, device);
