@@ -10,14 +10,15 @@
 //! `cargo run --release --example bench -- fem [frames]`: the finite-element rung's deep press, a
 //! sphere of 6 mm radius pressed 1 mm into a 3 mm DIGIT gel (E = 300 kPa, ν = 0.48, μ = 1) in
 //! `frames` equal steps (default 20), fields on the 320 × 240 grid: seconds and Newton iterations
-//! per frame with and without warm start, against the layered rung on the same frames.
+//! per frame with and without warm start, against the layered rung on the same frames
+//! (`fem [frames] warm`: warm start only).
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Instant;
 
 use glam::DVec3;
 use sparsh_contact::{
-    Bem, BemOptions, BemStats, ContactInput, ContactSolver, Fem, FemOptions, NextFrame,
+    Bem, BemOptions, BemStats, ContactInput, ContactSolver, Fem, FemOptions, FemStats, NextFrame,
     NormalControl, TangentialMethod, rigid_shift_mm, solver_for,
 };
 use sparsh_scene::{GapField, Gel, Grid, Indenter, Pose, SolverKind};
@@ -97,7 +98,7 @@ fn main() {
     }
     if args.get(1).map(String::as_str) == Some("fem") {
         let frames = args.get(2).map_or(20, |f| f.parse().expect("frames"));
-        deep_press(frames);
+        deep_press(frames, args.get(3).map(String::as_str) == Some("warm"));
         return;
     }
     let kind = match args.get(1).map(String::as_str) {
@@ -269,7 +270,7 @@ unsafe impl GlobalAlloc for CountingAllocator {
 static GLOBAL: CountingAllocator = CountingAllocator;
 
 /// The deep-press benchmark of the finite-element rung (see the module comment).
-fn deep_press(frames: usize) {
+fn deep_press(frames: usize, warm_only: bool) {
     let (grid, gel) = (DIGIT_GRID, DIGIT_GEL);
     let indenter = Indenter::Sphere { radius_mm: 6.0 };
     let gaps: Vec<GapField> = (1..=frames)
@@ -284,6 +285,7 @@ fn deep_press(frames: usize) {
     let still = vec![[0.0; 2]; grid.len()];
     // (label, seconds per frame, worst, Newton iterations per frame, final force)
     let mut rows = Vec::new();
+    let mut works = Vec::new();
     let mut layered = sparsh_contact::Bem::layered(gel, grid);
     let (mean, worst, _, force) = time_frames(&gaps, |gap| {
         (
@@ -299,6 +301,9 @@ fn deep_press(frames: usize) {
         force,
     ));
     for warm in [true, false] {
+        if warm_only && !warm {
+            continue;
+        }
         let options = FemOptions {
             warm_start: warm,
             ..FemOptions::default()
@@ -309,13 +314,43 @@ fn deep_press(frames: usize) {
         } else {
             "fem, from rest each frame"
         };
+        let mut work = FemStats::default();
         let (mean, worst, its, force) = time_frames(&gaps, |gap| {
             let fields = fem.solve(&pressed(gap, &still)).expect("fem solve");
-            (fields, fem.stats().newton_iterations)
+            let stats = fem.stats();
+            work.factorizations += stats.factorizations;
+            work.pcg_iterations += stats.pcg_iterations;
+            work.updates += stats.updates;
+            work.dofs = work.dofs.max(stats.dofs);
+            work.factor_nonzeros = work.factor_nonzeros.max(stats.factor_nonzeros);
+            work.assemble_s += stats.assemble_s;
+            work.factor_s += stats.factor_s;
+            work.solve_s += stats.solve_s;
+            work.line_search_s += stats.line_search_s;
+            (fields, stats.newton_iterations)
         });
         rows.push((label.to_string(), mean, worst, its, force));
+        works.push((label, work));
     }
     let base = rows[0].1;
+    let per_frame = |x: usize| x as f64 / frames as f64;
+    for (label, w) in &works {
+        let total = w.assemble_s + w.factor_s + w.solve_s + w.line_search_s;
+        eprintln!(
+            "{label}: per frame {:.1} factorisations, {:.1} preconditioned CG iterations, {:.1} multiplier updates; \
+             at most {} unknowns, {} nonzeros in the factor; time in assembly {:.0} %, factorisation {:.0} %, \
+             solves {:.0} %, line searches {:.0} %",
+            per_frame(w.factorizations),
+            per_frame(w.pcg_iterations),
+            per_frame(w.updates),
+            w.dofs,
+            w.factor_nonzeros,
+            100.0 * w.assemble_s / total,
+            100.0 * w.factor_s / total,
+            100.0 * w.solve_s / total,
+            100.0 * w.line_search_s / total,
+        );
+    }
     println!(
         "deep press: R = 6 mm sphere, 1 mm into a 3 mm gel in {frames} frames, 320 × 240 grid, {} threads",
         rayon::current_num_threads()
