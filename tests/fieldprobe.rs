@@ -157,6 +157,7 @@ fn fieldprobe_trains_without_fields_and_scores_against_them() {
         "zero flow",
         "classical",
         "markers",
+        sparsh_bench::fields::run::ORACLE,
     ] {
         assert!(
             md.contains(&format!("| {method} |")),
@@ -189,6 +190,30 @@ fn fieldprobe_trains_without_fields_and_scores_against_them() {
             assert!((0.0..=1.0).contains(&v), "{r:?}");
         }
     }
+    // the oracle row reads the true fields: correlations 1 and flow errors 0 by construction,
+    // through the per-sequence means and the bootstrap
+    let oracle = |metric: &str| -> [f64; 3] {
+        let row = rows
+            .iter()
+            .find(|r| {
+                &r[0] == "all" && &r[1] == sparsh_bench::fields::run::ORACLE && &r[2] == metric
+            })
+            .unwrap_or_else(|| panic!("no oracle {metric} row"));
+        [3, 4, 5].map(|c| row[c].parse().unwrap())
+    };
+    for metric in ["pearson_p", "spearman_p"] {
+        assert!(
+            oracle(metric).iter().all(|v| (v - 1.0).abs() < 1e-6),
+            "{metric}"
+        );
+    }
+    for metric in ["epe_contact_px", "epe_all_px"] {
+        assert_eq!(oracle(metric), [0.0; 3], "{metric}");
+    }
+    for metric in ["angular_contact_deg", "angular_all_deg"] {
+        assert!(oracle(metric).iter().all(|v| *v < 1e-3), "{metric}");
+    }
+    assert!(oracle("contact_iou")[0] > 0.5);
     // the markers score only the sensor that prints them, and only the flow
     assert!(
         rows.iter()

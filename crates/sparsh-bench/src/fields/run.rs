@@ -578,6 +578,9 @@ pub struct EvalSummary {
     pub markdown: String,
 }
 
+/// The row that reads the true fields (the scorer's ceiling).
+pub const ORACLE: &str = "oracle (true fields)";
+
 /// `sparsh fieldprobe eval`: the encoders and decoders run on `device`.
 pub fn eval_run(
     run: &Path,
@@ -722,6 +725,24 @@ pub fn eval_run(
         "  classical (intensity, Farnebäck): {:.0} s",
         t0.elapsed().as_secs_f64()
     ));
+    // The scorer's own ceiling: the true pressure as the normal map (its contact threshold
+    // chosen on the training pairs like every other row's) and the true flow, so r(p) and ρ(p)
+    // are 1 and the flow errors 0 by construction, and the contact IoU shows what thresholding
+    // a perfect map at the input's resolution costs.
+    let true_pressure = |truth: &[PairTruth]| -> Vec<Vec<f32>> {
+        truth.iter().map(|t| t.pressure_kpa.clone()).collect()
+    };
+    let oracle_thr = threshold_for(&true_pressure(&train_truth[..]));
+    let true_flow: Vec<Vec<[f32; 2]>> = test_truth.iter().map(|t| t.flow_px.clone()).collect();
+    methods.push(MethodScores {
+        name: ORACLE.into(),
+        per_pair: score_all(
+            Some(&true_pressure(&test_truth[..])),
+            Some(&true_flow),
+            oracle_thr,
+        ),
+    });
+    thresholds.push((ORACLE.into(), oracle_thr));
     // markers, where printed
     let marker_rows: Vec<usize> = (0..pairs.test.len())
         .filter(|&i| !pairs.sequences[pairs.test[i].sequence].markers_px[0].is_empty())
