@@ -999,7 +999,8 @@ fn pcg(
     for it in 1..=PCG_ITERATIONS {
         symmetric_product(sys, values, &p, &mut hp);
         let curvature = dot(&p, &hp);
-        if !(curvature > 0.0) {
+        // Negative curvature, or NaN from a broken system: not this solver's to fix.
+        if curvature.is_nan() || curvature <= 0.0 {
             return Err(it);
         }
         let alpha = rz / curvature;
