@@ -316,27 +316,23 @@ fn deep_press(frames: usize, warm_only: bool) {
         } else {
             "fem, from rest each frame"
         };
-        let mut work = FemStats::default();
+        let (mut work, mut largest) = (FemStats::default(), [0usize; 2]);
         let (mean, worst, its, force) = time_frames(&gaps, |gap| {
             let fields = fem.solve(&pressed(gap, &still)).expect("fem solve");
             let stats = fem.stats();
-            work.factorizations += stats.factorizations;
-            work.pcg_iterations += stats.pcg_iterations;
-            work.updates += stats.updates;
-            work.dofs = work.dofs.max(stats.dofs);
-            work.factor_nonzeros = work.factor_nonzeros.max(stats.factor_nonzeros);
-            work.assemble_s += stats.assemble_s;
-            work.factor_s += stats.factor_s;
-            work.solve_s += stats.solve_s;
-            work.line_search_s += stats.line_search_s;
+            work.accumulate(&stats);
+            largest = [
+                largest[0].max(stats.dofs),
+                largest[1].max(stats.factor_nonzeros),
+            ];
             (fields, stats.newton_iterations)
         });
         rows.push((label.to_string(), mean, worst, its, force));
-        works.push((label, work));
+        works.push((label, work, largest));
     }
     let base = rows[0].1;
     let per_frame = |x: usize| x as f64 / frames as f64;
-    for (label, w) in &works {
+    for (label, w, [dofs, nonzeros]) in &works {
         let total = w.assemble_s + w.factor_s + w.solve_s + w.line_search_s;
         eprintln!(
             "{label}: per frame {:.1} factorisations, {:.1} preconditioned CG iterations, {:.1} multiplier updates; \
@@ -345,8 +341,8 @@ fn deep_press(frames: usize, warm_only: bool) {
             per_frame(w.factorizations),
             per_frame(w.pcg_iterations),
             per_frame(w.updates),
-            w.dofs,
-            w.factor_nonzeros,
+            dofs,
+            nonzeros,
             100.0 * w.assemble_s / total,
             100.0 * w.factor_s / total,
             100.0 * w.solve_s / total,

@@ -225,15 +225,20 @@ mod tests {
         assert!(z.len() >= 5 && z.windows(2).all(|w| w[1] < w[0]));
     }
 
-    #[test]
-    fn surface_areas_add_up_to_the_block_top() {
-        let m = Mesh {
+    /// A 10 × 10 × 2 mm block with a fine zone off centre.
+    fn small_mesh() -> Mesh {
+        Mesh {
             x: graded_axis(-5.0, 5.0, -1.0, 1.0, 0.25, 1.5),
             y: graded_axis(-4.0, 6.0, -0.5, 1.5, 0.25, 1.5),
             z: graded_depth(2.0, 0.2, 1.5, 3),
             fine_zone: [-1.0, 1.0, -0.5, 1.5],
             fine_mm: 0.25,
-        };
+        }
+    }
+
+    #[test]
+    fn surface_areas_add_up_to_the_block_top() {
+        let m = small_mesh();
         let total: f64 = (0..m.y.len())
             .flat_map(|j| (0..m.x.len()).map(move |i| (i, j)))
             .map(|(i, j)| m.surface_area_mm2(i, j))
@@ -245,13 +250,7 @@ mod tests {
 
     #[test]
     fn nested_dissection_is_a_permutation_of_the_free_dofs() {
-        let m = Mesh {
-            x: graded_axis(-5.0, 5.0, -1.0, 1.0, 0.25, 1.5),
-            y: graded_axis(-4.0, 6.0, -0.5, 1.5, 0.25, 1.5),
-            z: graded_depth(2.0, 0.2, 1.5, 3),
-            fine_zone: [-1.0, 1.0, -0.5, 1.5],
-            fine_mm: 0.25,
-        };
+        let m = small_mesh();
         let mut order = m.nested_dissection();
         assert_eq!(order.len(), m.free_dofs());
         order.sort_unstable();

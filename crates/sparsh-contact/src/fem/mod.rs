@@ -119,7 +119,7 @@ pub struct FemStats {
 
 impl FemStats {
     /// Adds the work of `other` (its mesh sizes replace these).
-    fn accumulate(&mut self, other: &FemStats) {
+    pub fn accumulate(&mut self, other: &FemStats) {
         self.newton_iterations += other.newton_iterations;
         self.factorizations += other.factorizations;
         self.pcg_iterations += other.pcg_iterations;
@@ -1658,8 +1658,8 @@ mod tests {
         };
         let fem = Fem::new(layer(3.0, 1.0), grid);
         let mesh = fem.build_mesh([-1.7, 1.7, -1.7, 1.7], 1.7);
-        let nested = build_system(&mesh).symbolic.len_val();
         let pattern = build_system(&mesh);
+        let nested = pattern.symbolic.len_val();
         let n = mesh.free_dofs();
         let amd = factorize_symbolic_cholesky(
             SymbolicSparseColMatRef::new_checked(n, n, &pattern.col_ptr, None, &pattern.row_idx),
