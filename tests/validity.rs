@@ -136,23 +136,32 @@ fn limits_prints_the_checked_limits() {
     let out = common::sparsh(&["limits", "--tolerance", "0.05"]);
     assert!(out.status.success(), "{}", stderr(&out));
     let table = String::from_utf8(out.stdout).unwrap();
+    let frictions = SolverTable::builtin().swept_frictions();
+    assert!(frictions.len() >= 4, "{frictions:?}");
     for rung in SolverKind::ALL {
-        let limits = RungLimits::of(SolverTable::builtin(), rung, 0.05);
-        let row = table
-            .lines()
-            .find(|l| l.starts_with(&format!("| {} |", rung.name())))
-            .unwrap_or_else(|| panic!("no row for {rung:?}: {table}"));
-        let cells: Vec<&str> = row.split('|').map(str::trim).collect();
-        match limits.max_a_over_h {
-            Some(a) => {
-                assert_eq!(cells[2].parse::<f64>().unwrap(), a, "{row}");
-                assert_eq!(
-                    cells[3].parse::<f64>().unwrap(),
-                    limits.max_depth_over_h,
-                    "{row}"
-                );
+        for (k, &mu) in frictions.iter().enumerate() {
+            let limits = RungLimits::of(SolverTable::builtin(), rung, 0.05, mu);
+            let label = if k + 1 == frictions.len() {
+                "any".to_string()
+            } else {
+                format!("{mu}")
+            };
+            let row = table
+                .lines()
+                .find(|l| l.starts_with(&format!("| {} | {label} |", rung.name())))
+                .unwrap_or_else(|| panic!("no row for {rung:?} at μ {label}: {table}"));
+            let cells: Vec<&str> = row.split('|').map(str::trim).collect();
+            match limits.max_a_over_h {
+                Some(a) => {
+                    assert_eq!(cells[3].parse::<f64>().unwrap(), a, "{row}");
+                    assert_eq!(
+                        cells[4].parse::<f64>().unwrap(),
+                        limits.max_depth_over_h,
+                        "{row}"
+                    );
+                }
+                None => assert_eq!(&cells[3..5], ["nowhere", "nowhere"], "{row}"),
             }
-            None => assert_eq!(&cells[2..4], ["nowhere", "nowhere"], "{row}"),
         }
     }
     assert_user_error(

@@ -427,29 +427,42 @@ impl Chart for StabilityMap<'_> {
     }
 }
 
-/// `sparsh limits`: each rung's validity limits at `tolerance`, as a Markdown table on stdout.
+/// `sparsh limits`: each rung's validity limits at `tolerance`, per friction coefficient of the
+/// depth sweep, as a Markdown table on stdout.
 pub fn limits(tolerance: f64) -> Result<()> {
     if !(tolerance > 0.0 && tolerance < 1.0) {
         bail!("--tolerance: must be a relative force error in (0, 1), got {tolerance}");
     }
     let table = SolverTable::builtin();
-    println!("| rung | a/h up to | δ/h up to | best studied error |");
-    println!("|---|---|---|---|");
+    let mut frictions = table.swept_frictions();
+    if frictions.is_empty() {
+        frictions.push(0.0);
+    }
+    println!("| rung | friction μ up to | a/h up to | δ/h up to | best studied error |");
+    println!("|---|---|---|---|---|");
     for rung in SolverKind::ALL {
-        let limits = RungLimits::of(table, rung, tolerance);
-        let depth = match limits.max_depth_over_h {
-            d if d.is_finite() => format!("{d}"),
-            _ => "not swept".into(),
-        };
-        let (a_over_h, depth) = match limits.max_a_over_h {
-            Some(a) => (format!("{a}"), depth),
-            None => ("nowhere".into(), "nowhere".into()),
-        };
-        println!(
-            "| {} | {a_over_h} | {depth} | {:.2} % |",
-            rung.name(),
-            100.0 * limits.best_rel_error
-        );
+        for (k, &friction) in frictions.iter().enumerate() {
+            let limits = RungLimits::of(table, rung, tolerance, friction);
+            let depth = match limits.max_depth_over_h {
+                d if d.is_finite() => format!("{d}"),
+                _ => "not swept".into(),
+            };
+            let (a_over_h, depth) = match limits.max_a_over_h {
+                Some(a) => (format!("{a}"), depth),
+                None => ("nowhere".into(), "nowhere".into()),
+            };
+            // Past the largest swept friction a press sticks wholly: its limits hold.
+            let mu = if k + 1 == frictions.len() {
+                "any".to_string()
+            } else {
+                format!("{friction}")
+            };
+            println!(
+                "| {} | {mu} | {a_over_h} | {depth} | {:.2} % |",
+                rung.name(),
+                100.0 * limits.best_rel_error
+            );
+        }
     }
     Ok(())
 }

@@ -69,6 +69,9 @@ pub struct BemStats {
     pub kernel_s: f64,
     /// Wall time of the tangential problem (s).
     pub tangential_s: f64,
+    /// Normal and tangential solves in turn until they agreed (the layered rung with friction;
+    /// 0 where the problems are solved once each).
+    pub coupling_iterations: usize,
     /// Wall time of the call (s); with [`ContactSolver::solve_ahead`] it includes the next
     /// frame's normal problem, solved beside this frame's tangential one.
     pub total_s: f64,
@@ -220,6 +223,9 @@ struct Model {
     /// Influence coefficients of every offset on the grid, `[zz, xx, yy, xy]` (made on first
     /// use): the kernels of every window and spread.
     grid_tables: OnceLock<[Vec<f64>; 4]>,
+    /// The layer's normal–tangential coupling coefficients `[zx, zy]` of every offset (made on
+    /// first use; none on the half-space, which drops them).
+    coupling_tables: OnceLock<[Vec<f64>; 2]>,
 }
 
 /// Kernel spectra of one half of the frame's problem, by size. Each half keeps its own: a
@@ -278,6 +284,43 @@ struct NormalFrame {
     kernel_s: f64,
 }
 
+/// What the layer's normal–tangential coupling brings to a frame's tangential problem.
+#[derive(Clone, Copy)]
+struct Coupled<'a> {
+    /// The surface's tangential move caused by the frame's pressures (mm, whole grid).
+    from_pressure_mm: &'a Pair,
+    /// Tractions to start from (the last coupling iteration's), in place of the history's.
+    initial_kpa: Option<&'a Pair>,
+}
+
+/// A frame solved with the layer's coupling: its normal part (displacement into the gel from
+/// the pressures and the tractions), its tangential part, and the work done.
+struct CoupledFrame {
+    normal: NormalFrame,
+    tangential: TangentialFrame,
+    stats: BemStats,
+}
+
+/// Coupling iterations allowed in a frame before it is [`ContactError::NotConverged`].
+const MAX_COUPLING_ITERATIONS: usize = 100;
+
+/// The coupling iteration stops when neither the pressures nor the tractions moved by more than
+/// this fraction of the largest pressure (of the friction bound μp for the tractions).
+const COUPLING_TOLERANCE: f64 = 1e-6;
+
+/// max |a − b|.
+fn max_difference(a: &[f64], b: &[f64]) -> f64 {
+    a.iter().zip(b).fold(0.0, |m, (a, b)| m.max((a - b).abs()))
+}
+
+/// The patch of a frame's tangential problem: the contact's bounding box (tractions vanish
+/// outside the contact and only displacements inside it are needed), or the normal window.
+fn contact_patch(grid: &Grid, normal: &NormalFrame) -> Rect {
+    bbox(grid, |k| normal.contact[k])
+        .map(|r| padded_to(grid, r, 8))
+        .unwrap_or(normal.window)
+}
+
 /// One frame's tangential contact on the whole grid.
 struct TangentialFrame {
     traction_kpa: Pair,
@@ -296,6 +339,8 @@ struct Spread {
     xx: Vec<f64>,
     yy: Vec<f64>,
     xy: Vec<f64>,
+    /// The coupling's `[zx, zy]` (imaginary parts; empty on the half-space).
+    coupling: [Vec<f64>; 2],
 }
 
 /// The padded length of a spread along an axis of `n` cells whose patch-to-grid offsets stay
@@ -361,6 +406,7 @@ impl Bem {
             layer: None,
             options: BemOptions::default(),
             grid_tables: OnceLock::new(),
+            coupling_tables: OnceLock::new(),
         })
     }
 
@@ -399,6 +445,7 @@ impl Bem {
             layer: Some(layer),
             options: BemOptions::default(),
             grid_tables: OnceLock::new(),
+            coupling_tables: OnceLock::new(),
         })
     }
 
@@ -427,12 +474,26 @@ impl Side {
         let start = Instant::now();
         let conv = Conv::padded((px / 2).min(nx), (py / 2).min(ny), px, py);
         let [zz, xx, yy, xy] = kernel_spectra(&conv, model.grid_tables(), nx);
+        let coupling = match model.layer {
+            Some(_) => {
+                let tables = model.coupling_tables();
+                // zx is odd in x and even in y, zy the reverse.
+                [0, 1].map(|c| {
+                    conv.odd_kernel_spectrum(|di, dj| {
+                        let sign = if c == 0 { di.signum() } else { dj.signum() } as f64;
+                        sign * tables[c][dj.unsigned_abs() * nx + di.unsigned_abs()]
+                    })
+                })
+            }
+            None => [Vec::new(), Vec::new()],
+        };
         let spread = Arc::new(Spread {
             conv,
             zz,
             xx,
             yy,
             xy,
+            coupling,
         });
         self.spread_cache.insert((px, py), spread.clone());
         self.kernel_s += start.elapsed().as_secs_f64();
@@ -489,8 +550,8 @@ impl Model {
                 (0..nx).map(move |di| {
                     let (x, y) = (di as f64 * cell, dj as f64 * cell);
                     let mut k = halfspace_cell(c, x, y, cell, e, nu);
-                    if let (Component::Zz, Some(layer)) = (c, layer) {
-                        k += layer.at(x.hypot(y)) * cell * cell;
+                    if let Some(layer) = layer {
+                        k += layer.at(c, x, y) * cell * cell;
                     }
                     k
                 })
@@ -505,6 +566,52 @@ impl Model {
             let (nx, ny) = (self.grid.nx, self.grid.ny);
             COMPONENTS.map(|c| self.table(c, nx, ny))
         })
+    }
+
+    /// The coupling tables `[zx, zy]` of every offset on the grid (made on first use).
+    fn coupling_tables(&self) -> &[Vec<f64>; 2] {
+        self.coupling_tables.get_or_init(|| {
+            let (nx, ny) = (self.grid.nx, self.grid.ny);
+            [Component::Zx, Component::Zy].map(|c| self.table(c, nx, ny))
+        })
+    }
+
+    /// The surface's move into the gel caused by tractions (on the whole grid) that vanish
+    /// outside `patch`, through the layer's coupling.
+    fn uz_from_traction(&self, side: &mut Side, traction_kpa: &Pair, patch: Rect) -> Vec<f64> {
+        let grid = self.grid;
+        let spread = side.spread(self, patch);
+        let [qx, qy] = [0, 1].map(|c| {
+            cells(&grid, patch)
+                .map(|k| traction_kpa[c][k])
+                .collect::<Vec<_>>()
+        });
+        let mut uz = vec![0.0; grid.len()];
+        spread.conv.spread_odd_pair_into(
+            [&spread.coupling[0], &spread.coupling[1]],
+            [&qx, &qy],
+            (patch.width(), patch.height()),
+            (patch.i0, patch.j0),
+            (&mut uz, grid.nx),
+        );
+        uz
+    }
+
+    /// The surface's tangential move caused by pressures (on the whole grid) that vanish outside
+    /// `patch`, through the layer's coupling.
+    fn tangential_from_pressure(&self, side: &mut Side, pressure_kpa: &[f64], patch: Rect) -> Pair {
+        let grid = self.grid;
+        let spread = side.spread(self, patch);
+        let p: Vec<f64> = cells(&grid, patch).map(|k| pressure_kpa[k]).collect();
+        let (mut ux, mut uy) = (vec![0.0; grid.len()], vec![0.0; grid.len()]);
+        spread.conv.spread_odd_to_pair_into(
+            [&spread.coupling[0], &spread.coupling[1]],
+            &p,
+            (patch.width(), patch.height()),
+            (patch.i0, patch.j0),
+            ([&mut ux, &mut uy], grid.nx),
+        );
+        [ux, uy]
     }
 
     fn out_of_validity(&self, reason: impl Into<String>) -> ContactError {
@@ -1378,7 +1485,117 @@ impl Model {
         }))
     }
 
-    /// The tangential problem of a frame whose normal contact is `normal`, after `previous`.
+    /// A frame on the bonded layer with friction: the normal problem (its gap moved by the
+    /// surface's sinking under the last tractions) and the tangential one (its slip moved by the
+    /// pressures' tangential displacement) solved in turn, each from the other's latest answer —
+    /// block Gauss–Seidel on the coupled contact problem, the alternation of normal and
+    /// tangential solves of Kalker's and Chen & Wang's (2008) boundary-element methods — until
+    /// neither moves by [`COUPLING_TOLERANCE`]. `None`: nothing touches.
+    fn coupled_frame(
+        &self,
+        (normal_side, normal_work): (&mut Side, &mut NormalWork),
+        (tangential_side, newton_work): (&mut Side, &mut NewtonWork),
+        input: &ContactInput,
+        previous: Option<&History>,
+    ) -> Result<Option<CoupledFrame>, ContactError> {
+        let grid = self.grid;
+        let traction_patch = |q: &Pair| {
+            bbox(&grid, |k| q[0][k] != 0.0 || q[1][k] != 0.0).map(|r| padded_to(&grid, r, 8))
+        };
+        let sink_from = |side: &mut Side, q: &Pair| {
+            traction_patch(q).map(|patch| self.uz_from_traction(side, q, patch))
+        };
+        let mut stats = BemStats::default();
+        let mut last: Option<(NormalFrame, TangentialFrame)> = None;
+        let mut moved = f64::INFINITY;
+        for iteration in 1..=MAX_COUPLING_ITERATIONS {
+            let traction = match &last {
+                Some((_, t)) => Some(&t.traction_kpa),
+                None => previous.map(|h| &h.traction_kpa),
+            };
+            let sink = traction.and_then(|q| sink_from(normal_side, q));
+            let gap = match &sink {
+                Some(uz) => GapField {
+                    grid,
+                    gap_mm: input
+                        .gap
+                        .gap_mm
+                        .iter()
+                        .zip(uz)
+                        .map(|(g, u)| g + u)
+                        .collect(),
+                },
+                None => input.gap.clone(),
+            };
+            let past = match &last {
+                Some((n, _)) => Some(NormalPast {
+                    pressure_kpa: &n.pressure_kpa,
+                    pressure_before_kpa: None,
+                    offset_mm: n.offset_mm,
+                }),
+                None => previous.map(History::normal_past),
+            };
+            let Normal::Pressed(normal) =
+                self.normal_frame(normal_side, normal_work, (&gap, input.normal), past)?
+            else {
+                return Ok(None);
+            };
+            let patch = contact_patch(&grid, &normal);
+            let from_pressure =
+                self.tangential_from_pressure(tangential_side, &normal.pressure_kpa, patch);
+            let tangential = self.tangential_frame(
+                tangential_side,
+                newton_work,
+                input,
+                &normal,
+                previous,
+                Some(Coupled {
+                    from_pressure_mm: &from_pressure,
+                    initial_kpa: last.as_ref().map(|(_, t)| &t.traction_kpa),
+                }),
+            )?;
+            stats.normal_convolutions += normal.convolutions;
+            stats.normal_windows += normal.windows;
+            stats.tangential_convolutions += tangential.convolutions;
+            stats.normal_s += normal.normal_s;
+            stats.tangential_s += tangential.tangential_s;
+            stats.kernel_s += normal.kernel_s + tangential.kernel_s;
+            stats.coupling_iterations = iteration;
+            let p_max = normal.pressure_kpa.iter().fold(0.0f64, |m, &p| m.max(p));
+            if let Some((n0, t0)) = &last {
+                let dp = max_difference(&n0.pressure_kpa, &normal.pressure_kpa);
+                let dq = (0..2)
+                    .map(|c| max_difference(&t0.traction_kpa[c], &tangential.traction_kpa[c]))
+                    .fold(0.0, f64::max);
+                moved = (dp / p_max).max(dq / (self.gel.friction * p_max));
+            }
+            let settled = moved <= COUPLING_TOLERANCE;
+            last = Some((normal, tangential));
+            if settled {
+                let (mut normal, tangential) = last.expect("just set");
+                if let Some(uz) = sink_from(normal_side, &tangential.traction_kpa) {
+                    normal
+                        .uz_into_mm
+                        .iter_mut()
+                        .zip(uz)
+                        .for_each(|(u, v)| *u += v);
+                }
+                return Ok(Some(CoupledFrame {
+                    normal,
+                    tangential,
+                    stats,
+                }));
+            }
+        }
+        Err(ContactError::NotConverged {
+            solver: self.name,
+            iterations: MAX_COUPLING_ITERATIONS,
+            residual: moved,
+        })
+    }
+
+    /// The tangential problem of a frame whose normal contact is `normal`, after `previous`
+    /// (with the layer's coupling: the surface's move caused by the pressures, `coupled`).
     fn tangential_frame(
         &self,
         side: &mut Side,
@@ -1386,36 +1603,39 @@ impl Model {
         input: &ContactInput,
         normal: &NormalFrame,
         previous: Option<&History>,
+        coupled: Option<Coupled<'_>>,
     ) -> Result<TangentialFrame, ContactError> {
         let tangential_start = Instant::now();
         side.kernel_s = 0.0;
         let grid = self.grid;
         let n = grid.len();
         let NormalFrame {
-            window,
             pressure_kpa,
             contact,
             ..
         } = normal;
-        let window = *window;
-        // Tangential problem on the contact's bounding box: tractions vanish outside the
-        // contact and only displacements inside it are needed.
-        let patch = bbox(&grid, |k| contact[k])
-            .map(|r| padded_to(&grid, r, 8))
-            .unwrap_or(window);
+        let patch = contact_patch(&grid, normal);
         let spectra = side.spectra(self, patch.width(), patch.height());
         let mu = self.gel.friction;
         let bound: Vec<f64> = cells(&grid, patch).map(|k| mu * pressure_kpa[k]).collect();
         let shift = &input.rigid_shift_mm;
+        // The slip increment is (last displacement + rigid shift) − displacement now, of which
+        // the pressures' part is known here.
+        let from_pressure = |c: usize, k: usize| coupled.map_or(0.0, |d| d.from_pressure_mm[c][k]);
         let target = [0, 1].map(|c| -> Vec<f64> {
             match previous {
                 Some(h) => cells(&grid, patch)
-                    .map(|k| h.u_tangential_mm[c][k] + shift[k][c])
+                    .map(|k| h.u_tangential_mm[c][k] + shift[k][c] - from_pressure(c, k))
                     .collect(),
-                None => cells(&grid, patch).map(|k| shift[k][c]).collect(),
+                None => cells(&grid, patch)
+                    .map(|k| shift[k][c] - from_pressure(c, k))
+                    .collect(),
             }
         });
         let initial = [0, 1].map(|c| -> Vec<f64> {
+            if let Some(q) = coupled.and_then(|d| d.initial_kpa) {
+                return cells(&grid, patch).map(|k| q[c][k]).collect();
+            }
             match previous.filter(|_| self.options.warm_start) {
                 Some(h) => match &h.traction_before_kpa {
                     Some(before) => cells(&grid, patch)
@@ -1453,6 +1673,11 @@ impl Model {
             (patch.i0, patch.j0),
             ([&mut ux, &mut uy], grid.nx),
         );
+        if let Some(d) = coupled {
+            for (u, v) in [&mut ux, &mut uy].into_iter().zip(d.from_pressure_mm) {
+                u.iter_mut().zip(v).for_each(|(u, v)| *u += v);
+            }
+        }
         Ok(TangentialFrame {
             traction_kpa: traction,
             slip: (0..n).map(|k| contact[k] && slip_full[k] > 0.0).collect(),
@@ -1501,6 +1726,23 @@ impl Bem {
         {
             return Err(model.out_of_validity("non-finite rigid shift"));
         }
+        // The bonded layer couples the normal and tangential problems; with friction they are
+        // solved together, without a normal problem ahead (it would need this frame's tractions).
+        let coupling = model.layer.is_some();
+        if coupling && model.gel.friction > 0.0 {
+            self.ahead = None;
+            let coupled = model.coupled_frame(
+                (&mut self.normal_side, &mut self.normal_work),
+                (&mut self.tangential_side, &mut self.newton_work),
+                input,
+                previous,
+            )?;
+            let Some(frame) = coupled else {
+                return Ok((Fields::zero(grid), None));
+            };
+            self.stats = frame.stats;
+            return Ok(self.finish_frame(start, frame.normal, frame.tangential));
+        }
         let normal = match self.ahead.take() {
             Some(ahead) if ahead.normal == input.normal && ahead.gap_mm == input.gap.gap_mm => {
                 ahead.solved?
@@ -1517,6 +1759,14 @@ impl Bem {
         };
         // The grid's tables are made before the two halves may both need them.
         model.grid_tables();
+        // Frictionless, the coupling only moves the surface along it (the tractions stay zero).
+        let from_pressure = coupling.then(|| {
+            model.tangential_from_pressure(
+                &mut self.tangential_side,
+                &normal.pressure_kpa,
+                contact_patch(&grid, &normal),
+            )
+        });
         let (tangential, ahead) = rayon::join(
             || {
                 model.tangential_frame(
@@ -1525,6 +1775,10 @@ impl Bem {
                     input,
                     &normal,
                     previous,
+                    from_pressure.as_ref().map(|u| Coupled {
+                        from_pressure_mm: u,
+                        initial_kpa: None,
+                    }),
                 )
             },
             || {
@@ -1546,6 +1800,27 @@ impl Bem {
         );
         let tangential = tangential?;
         self.ahead = ahead;
+        self.stats = BemStats {
+            normal_convolutions: normal.convolutions,
+            normal_windows: normal.windows,
+            tangential_convolutions: tangential.convolutions,
+            normal_s: normal.normal_s,
+            kernel_s: normal.kernel_s + tangential.kernel_s,
+            tangential_s: tangential.tangential_s,
+            coupling_iterations: 0,
+            total_s: 0.0,
+        };
+        Ok(self.finish_frame(start, normal, tangential))
+    }
+
+    /// The fields and the next frame's history from a frame's normal and tangential solutions.
+    fn finish_frame(
+        &mut self,
+        start: Instant,
+        normal: NormalFrame,
+        tangential: TangentialFrame,
+    ) -> (Fields, Option<History>) {
+        let grid = self.model.grid;
         let NormalFrame {
             pressure_kpa,
             uz_into_mm,
@@ -1554,15 +1829,6 @@ impl Bem {
             load_controlled,
             ..
         } = normal;
-        self.stats = BemStats {
-            normal_convolutions: normal.convolutions,
-            normal_windows: normal.windows,
-            tangential_convolutions: tangential.convolutions,
-            normal_s: normal.normal_s,
-            kernel_s: normal.kernel_s + tangential.kernel_s,
-            tangential_s: tangential.tangential_s,
-            total_s: 0.0,
-        };
         let TangentialFrame {
             traction_kpa: [tx, ty],
             u_tangential_mm: [ux, uy],
@@ -1594,7 +1860,7 @@ impl Bem {
             u_tangential_mm: [ux, uy],
             offset_mm,
         };
-        Ok((fields, Some(history)))
+        (fields, Some(history))
     }
 }
 

@@ -177,6 +177,22 @@ impl Conv {
     /// |di| < nx, |dj| < ny, wrapped onto the padded grid (DC-FFT); the other offsets get zero.
     /// The kernel must be even, so the imaginary part vanishes.
     pub(crate) fn kernel_spectrum(&self, kernel: impl Fn(isize, isize) -> f64) -> Vec<f64> {
+        self.kernel_spectrum_complex(kernel)
+            .iter()
+            .map(|c| c.re)
+            .collect()
+    }
+
+    /// The imaginary part of the spectrum of a kernel odd in one offset and even in the other
+    /// (whose real part vanishes), wrapped as in [`Conv::kernel_spectrum`].
+    pub(crate) fn odd_kernel_spectrum(&self, kernel: impl Fn(isize, isize) -> f64) -> Vec<f64> {
+        self.kernel_spectrum_complex(kernel)
+            .iter()
+            .map(|c| c.im)
+            .collect()
+    }
+
+    fn kernel_spectrum_complex(&self, kernel: impl Fn(isize, isize) -> f64) -> Vec<Complex<f64>> {
         let (px, py) = (self.px, self.py);
         // The offset stored at padded index `i` of a length-`p` axis with `n` window cells.
         let offset = |i: usize, n: usize, p: usize| {
@@ -211,7 +227,7 @@ impl Conv {
             &mut out,
             &mut scratch,
         );
-        spec.iter().map(|c| c.re).collect()
+        spec
     }
 
     /// Inverse transform of `spec` (destroyed) into `dst`, rows of `width` values: value (i, j)
@@ -331,6 +347,71 @@ impl Conv {
         }
     }
 
+    /// [`Conv::spread_into`] of the normal–tangential coupling from tractions:
+    /// u_z = K_zx ∗ q_x + K_zy ∗ q_y, with K_zx, K_zy odd ([`Conv::odd_kernel_spectrum`] gives
+    /// `kzx` and `kzy`, the imaginary parts of their spectra).
+    pub(crate) fn spread_odd_pair_into(
+        &self,
+        [kzx, kzy]: [&[f64]; 2],
+        [qx, qy]: [&[f64]; 2],
+        size: (usize, usize),
+        origin: (usize, usize),
+        (dst, width): (&mut [f64], usize),
+    ) {
+        let mut guard = self.buffers.lock().expect("convolution buffers");
+        let b = &mut *guard;
+        let [sx, sy] = &mut b.spectra;
+        for (q, spec) in [(qx, &mut *sx), (qy, &mut *sy)] {
+            self.forward_into(
+                q,
+                size,
+                spec,
+                &mut b.real_row,
+                &mut b.complex_row,
+                &mut b.r2c_scratch,
+            );
+        }
+        for k in 0..sx.len() {
+            // i (kzx Q_x + kzy Q_y).
+            let v = sx[k] * kzx[k] + sy[k] * kzy[k];
+            sx[k] = Complex::new(-v.im, v.re);
+        }
+        self.inverse_shifted_into(sx, dst, width, origin);
+    }
+
+    /// [`Conv::spread_into`] of the coupling from pressures: (u_x, u_y) = −(K_zx, K_zy) ∗ p
+    /// (reciprocity: a pressure moves the surface along x as a traction along x moves it
+    /// into the gel, mirrored).
+    pub(crate) fn spread_odd_to_pair_into(
+        &self,
+        [kzx, kzy]: [&[f64]; 2],
+        p: &[f64],
+        size: (usize, usize),
+        origin: (usize, usize),
+        ([ux, uy], width): ([&mut [f64]; 2], usize),
+    ) {
+        let mut guard = self.buffers.lock().expect("convolution buffers");
+        let b = &mut *guard;
+        let [sx, sy] = &mut b.spectra;
+        self.forward_into(
+            p,
+            size,
+            sx,
+            &mut b.real_row,
+            &mut b.complex_row,
+            &mut b.r2c_scratch,
+        );
+        for k in 0..sx.len() {
+            // −i k P.
+            let v = sx[k];
+            sy[k] = Complex::new(v.im * kzy[k], -v.re * kzy[k]);
+            sx[k] = Complex::new(v.im * kzx[k], -v.re * kzx[k]);
+        }
+        for (spec, dst) in [(sx, ux), (sy, uy)] {
+            self.inverse_shifted_into(spec, dst, width, origin);
+        }
+    }
+
     /// (u_x, u_y) = [[K_xx, K_xy], [K_xy, K_yy]] ∗ (q_x, q_y), into `dst`.
     pub(crate) fn apply_pair_into(
         &self,
@@ -410,6 +491,66 @@ mod tests {
                 let want_y = direct(&kxy, &src[0], i, j) + direct(&kyy, &src[1], i, j);
                 assert!((ux[k] - want_x).abs() < 1e-12, "x {i},{j}");
                 assert!((uy[k] - want_y).abs() < 1e-12, "y {i},{j}");
+            }
+        }
+    }
+
+    /// The coupling spreads (odd kernels, imaginary spectra) equal the direct sums.
+    #[test]
+    fn odd_spreads_match_direct_sums() {
+        let (width, height) = (13, 9);
+        let (sx, sy, i0, j0) = (4, 3, 8, 1);
+        let conv = Conv::padded(12, 8, smooth_length(24), smooth_length(16));
+        let kzx = |di: isize, dj: isize| di as f64 / (1.0 + (di * di + 2 * dj * dj) as f64);
+        let kzy = |di: isize, dj: isize| dj as f64 / (2.0 + (2 * di * di + dj * dj) as f64);
+        let spectra = [conv.odd_kernel_spectrum(kzx), conv.odd_kernel_spectrum(kzy)];
+        let src: [Vec<f64>; 3] = [3, 5, 7].map(|m| {
+            (0..sx * sy)
+                .map(|k| ((k * 37) % (m + 8)) as f64 - 4.0)
+                .collect()
+        });
+        let direct = |kernel: &dyn Fn(isize, isize) -> f64, field: &[f64], i: usize, j: usize| {
+            let mut sum = 0.0;
+            for l in 0..sy {
+                for k in 0..sx {
+                    let (di, dj) = (
+                        i as isize - (i0 + k) as isize,
+                        j as isize - (j0 + l) as isize,
+                    );
+                    sum += kernel(di, dj) * field[l * sx + k];
+                }
+            }
+            sum
+        };
+        let mut uz = vec![0.0; width * height];
+        conv.spread_odd_pair_into(
+            [&spectra[0], &spectra[1]],
+            [&src[0], &src[1]],
+            (sx, sy),
+            (i0, j0),
+            (&mut uz, width),
+        );
+        let (mut ux, mut uy) = (vec![0.0; width * height], vec![0.0; width * height]);
+        conv.spread_odd_to_pair_into(
+            [&spectra[0], &spectra[1]],
+            &src[2],
+            (sx, sy),
+            (i0, j0),
+            ([&mut ux, &mut uy], width),
+        );
+        for j in 0..height {
+            for i in 0..width {
+                let k = j * width + i;
+                let want_z = direct(&kzx, &src[0], i, j) + direct(&kzy, &src[1], i, j);
+                assert!((uz[k] - want_z).abs() < 1e-12, "z {i},{j}");
+                assert!(
+                    (ux[k] + direct(&kzx, &src[2], i, j)).abs() < 1e-12,
+                    "x {i},{j}"
+                );
+                assert!(
+                    (uy[k] + direct(&kzy, &src[2], i, j)).abs() < 1e-12,
+                    "y {i},{j}"
+                );
             }
         }
     }

@@ -15,8 +15,11 @@
 //! that depend on one coordinate only (they cancel between corners) and avoids the cancellation
 //! of ln(y + r) for y < 0.
 //!
-//! Normal–tangential coupling (terms ∝ (1−2ν)) is neglected (Goodman's approximation, Johnson
-//! §7.2); it vanishes for an incompressible gel (ν = 0.5).
+//! Normal–tangential coupling (Johnson eqs. 3.19a and 3.86c): a normal force P moves the surface
+//! radially, u_r = −(1−2ν)P/(4πG r), and a tangential force Q along x moves it into the gel by
+//! u_z = (1−2ν)Q x/(4πG r²); ∬ x/r² = x atan(y/x) + (y/2) ln(x² + y²). The half-space rung drops
+//! these terms (Goodman's approximation, Johnson §7.2; they vanish at ν = 0.5); a bonded layer has
+//! coupling at every ν ([`LayerCorrection`]), which the layered rung keeps.
 
 /// Which displacement–traction pair a coefficient couples.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -29,6 +32,10 @@ pub(crate) enum Component {
     Yy,
     /// u_x from q_y (= u_y from q_x).
     Xy,
+    /// u_z from q_x (= −u_x from p): odd in x.
+    Zx,
+    /// u_z from q_y (= −u_y from p): odd in y.
+    Zy,
 }
 
 /// x asinh(y/|x|), continuous at x = 0.
@@ -76,7 +83,20 @@ pub(crate) fn halfspace_cell(
             }) / (2.0 * pi * shear_kpa)
         }
         Component::Xy => corners(x, y, half, |x, y| -nu * x.hypot(y)) / (2.0 * pi * shear_kpa),
+        Component::Zx => (1.0 - 2.0 * nu) * corners(x, y, half, x_over_r2) / (4.0 * pi * shear_kpa),
+        Component::Zy => (1.0 - 2.0 * nu) * corners(y, x, half, x_over_r2) / (4.0 * pi * shear_kpa),
     }
+}
+
+/// x atan(y/x) + (y/2) ln(x² + y²), whose mixed derivative is x/r² (0 where a term's factor is 0).
+fn x_over_r2(x: f64, y: f64) -> f64 {
+    let angle = if x == 0.0 { 0.0 } else { x * (y / x).atan() };
+    let log = if y == 0.0 {
+        0.0
+    } else {
+        0.5 * y * (x * x + y * y).ln()
+    };
+    angle + log
 }
 
 /// Ratio N/D of the bonded-layer compliance to the half-space one at s = 2|q|h (Carbone &
@@ -129,25 +149,106 @@ pub(crate) fn bessel_j0(x: f64) -> f64 {
     }
 }
 
-/// The bonded layer's normal compliance minus the half-space's, in real space, tabulated in r.
+/// Bessel function J₁ (Numerical Recipes §6.5, absolute error below 1e-8).
+pub(crate) fn bessel_j1(x: f64) -> f64 {
+    let ax = x.abs();
+    if ax < 8.0 {
+        let y = x * x;
+        let n = x
+            * (72362614232.0
+                + y * (-7895059235.0
+                    + y * (242396853.1
+                        + y * (-2972611.439 + y * (15704.48260 + y * (-30.16036606))))));
+        let d = 144725228442.0
+            + y * (2300535178.0 + y * (18583304.74 + y * (99447.43394 + y * (376.9991397 + y))));
+        n / d
+    } else {
+        let z = 8.0 / ax;
+        let y = z * z;
+        let xx = ax - 3.0 * std::f64::consts::FRAC_PI_4;
+        let p = 1.0
+            + y * (0.183105e-2
+                + y * (-0.3516396496e-4 + y * (0.2457520174e-5 + y * (-0.240337019e-6))));
+        let q = 0.04687499995
+            + y * (-0.2002690873e-3
+                + y * (0.8449199096e-5 + y * (-0.88228987e-6 + y * 0.105787412e-6)));
+        let j = (std::f64::consts::FRAC_2_PI / ax).sqrt() * (xx.cos() * p - z * xx.sin() * q);
+        if x < 0.0 { -j } else { j }
+    }
+}
+
+/// Bessel function J₂ = 2J₁(x)/x − J₀(x), by its series below x = 1 (where the recurrence
+/// cancels).
+pub(crate) fn bessel_j2(x: f64) -> f64 {
+    if x.abs() < 1.0 {
+        let y = x * x;
+        y / 8.0 * (1.0 - y / 12.0 * (1.0 - y / 32.0 * (1.0 - y / 60.0)))
+    } else {
+        2.0 * bessel_j1(x) / x - bessel_j0(x)
+    }
+}
+
+/// Surface compliances of a layer of thickness h bonded to a rigid base, times G|k|, at
+/// t = |k|h (G the shear modulus): a surface traction of wavevector k moves the surface by
+/// C/(G|k|) times it. From the general solution u = (A + Bz)e^(kz) + (C + Dz)e^(−kz) of Navier's
+/// equations in the plane of k (Johnson 1985, §2.2; the same steps as Carbone & Mangialardi 2008,
+/// App. A), with the base held and the surface loaded; with w = e^(−2t) (nothing overflows) and
+/// D = (3−4ν)(1 + w²) + (10 − 24ν + 16ν² + 4t²) w:
+/// - longitudinal (along k, from a traction along k): (1−ν)[(3−4ν)(1 − w²) + 4tw]/D;
+/// - transverse (across k): tanh t;
+/// - coupling: a pressure p̂ moves the surface along k by i X p̂/(G|k|), and a traction q̂ along
+///   k moves it into the gel by −i X q̂/(G|k|), X = [(1−2ν)(3−4ν)(1 − w)² − 4t²w]/(2D).
 ///
-/// With ũ_z = C(q) p̃, the layer's C_layer(q) = (2/(E*|q|)) · N/D ([`layer_ratio`]) and the
-/// half-space's 2/(E*|q|), the point-force difference is the Hankel transform
-/// c(r) = (1/2π) ∫₀^∞ [C_layer − C_half] J₀(qr) q dq = Φ(r/2h)/(2π E* h),
-/// Φ(ρ) = ∫₀^∞ (N/D − 1)(s) J₀(sρ) ds. The integrand is bounded (−1 at s = 0) and decays like
-/// s² e^(−s), so Simpson's rule on s ∈ [0, 60] converges; for r ≫ h, c → −1/(πE* r) cancels the
-/// Boussinesq tail, and the zero mode (N/D → 0 as q → 0, the uniaxial stiffness E(1−ν)/((1+ν)
-/// (1−2ν)h), infinite at ν = 0.5) needs no special case. Adding c(r)·cell area to the half-space
-/// cell coefficient gives the layer's coefficient for a laterally unbounded layer (no periodic
-/// images); c is smooth on the scale h, so taking it at the cell centre costs O((cell/h)²).
+/// (The normal one is [`layer_ratio`]·(1−ν).) As t → ∞ they tend to the half-space's 1−ν, 1 and
+/// (1−2ν)/2; as t → 0 to a sheared slab's t, t, and for ν = 0.5 to −t²/2 (squeeze flow).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) struct LayerCompliance {
+    pub(crate) longitudinal: f64,
+    pub(crate) transverse: f64,
+    pub(crate) coupling: f64,
+}
+
+impl LayerCompliance {
+    pub(crate) fn at(t: f64, poisson: f64) -> LayerCompliance {
+        let nu = poisson;
+        let w = (-2.0 * t).exp();
+        let kappa = 3.0 - 4.0 * nu;
+        let d = kappa * (1.0 + w * w) + (10.0 - 24.0 * nu + 16.0 * nu * nu + 4.0 * t * t) * w;
+        LayerCompliance {
+            longitudinal: (1.0 - nu) * (kappa * (1.0 - w * w) + 4.0 * t * w) / d,
+            transverse: t.tanh(),
+            coupling: ((1.0 - 2.0 * nu) * kappa * (1.0 - w) * (1.0 - w) - 4.0 * t * t * w)
+                / (2.0 * d),
+        }
+    }
+}
+
+/// The bonded layer's point-force responses minus the half-space's, in real space, tabulated in r
+/// (per unit force, mm per kPa·mm²). Each is a Hankel transform of the compliance difference
+/// ([`layer_ratio`], [`LayerCompliance`]); with ρ = r/h and G the shear modulus:
+/// - normal: (1/2πGh) ∫ (C_zz − (1−ν)) J₀(tρ) dt, written as Φ(r/2h)/(2πE*h) with
+///   Φ(ρ) = ∫ (N/D − 1)(s) J₀(sρ) ds, s = 2t;
+/// - tangential: u_x from a force along x is a(r) + b(r) cos 2θ, u_y from it b(r) sin 2θ, with
+///   a = (1/4πGh) ∫ (C_L + C_T − (2−ν)) J₀(tρ) dt and b = −(1/4πGh) ∫ (C_L − C_T + ν) J₂(tρ) dt
+///   (the half-space's Cerruti terms are a = (2−ν)/(4πGr), b = ν/(4πGr));
+/// - coupling: a force along x moves the surface into the gel by (x/r) f(r), and a normal force
+///   moves it by −(x/r) f(r) along x, f = (1/2πGh) ∫ (X − (1−2ν)/2) J₁(tρ) dt.
+///
+/// The integrands are bounded at t = 0 and decay like t² e^(−2t), so Simpson's rule on
+/// t ∈ [0, 30] converges; for r ≫ h each cancels the half-space's 1/r tail, and the zero mode
+/// (C_zz → 0 as k → 0, the uniaxial stiffness E(1−ν)/((1+ν)(1−2ν)h), infinite at ν = 0.5) needs
+/// no special case. Adding them times the cell area to the half-space cell coefficients gives
+/// the layer's coefficients for a laterally unbounded layer (no periodic images); they are smooth
+/// on the scale h, so taking them at the cell centre costs O((cell/h)²).
 #[derive(Debug, Clone)]
 pub(crate) struct LayerCorrection {
     step_mm: f64,
-    values: Vec<f64>,
+    /// [normal, a, b, f] at r = k·step.
+    values: [Vec<f64>; 4],
 }
 
 impl LayerCorrection {
-    /// Tabulates c(r) (mm per kPa·mm²) for 0 ≤ r ≤ `r_max_mm` at a step of `step_mm`.
+    /// Tabulates the responses for 0 ≤ r ≤ `r_max_mm` at a step of `step_mm`.
     pub(crate) fn new(
         youngs_kpa: f64,
         poisson: f64,
@@ -155,14 +256,18 @@ impl LayerCorrection {
         r_max_mm: f64,
         step_mm: f64,
     ) -> LayerCorrection {
-        let e_star = youngs_kpa / (1.0 - poisson * poisson);
+        let nu = poisson;
+        let e_star = youngs_kpa / (1.0 - nu * nu);
+        let shear_kpa = youngs_kpa / (2.0 * (1.0 + nu));
         let rho_max = r_max_mm / (2.0 * thickness_mm);
         let s_max = 60.0;
-        // ≥ 40 samples per period of J₀(sρ) and per unit of s.
+        // ≥ 40 samples per period of the Bessel functions and per unit of s.
         let ds_target = (2.0 * std::f64::consts::PI / (40.0 * rho_max.max(1e-9))).min(0.025);
         let intervals = ((s_max / ds_target).ceil() as usize).next_multiple_of(2);
         let ds = s_max / intervals as f64;
-        let weighted: Vec<(f64, f64)> = (0..=intervals)
+        let dt = 0.5 * ds;
+        // (s, Simpson-weighted integrands [normal in s, a, b, f in t]).
+        let weighted: Vec<(f64, [f64; 4])> = (0..=intervals)
             .map(|k| {
                 let s = k as f64 * ds;
                 let w = if k == 0 || k == intervals {
@@ -171,31 +276,72 @@ impl LayerCorrection {
                     4.0
                 } else {
                     2.0
-                };
-                (s, w * ds / 3.0 * (layer_ratio(s, poisson) - 1.0))
+                } / 3.0;
+                let c = LayerCompliance::at(0.5 * s, nu);
+                (
+                    s,
+                    [
+                        w * ds * (layer_ratio(s, nu) - 1.0),
+                        w * dt * (c.longitudinal + c.transverse - (2.0 - nu)),
+                        w * dt * (c.longitudinal - c.transverse + nu),
+                        w * dt * (c.coupling - 0.5 * (1.0 - 2.0 * nu)),
+                    ],
+                )
             })
             .collect();
         let count = (r_max_mm / step_mm).ceil() as usize + 2;
-        let scale = 1.0 / (2.0 * std::f64::consts::PI * e_star * thickness_mm);
-        let values = (0..count)
+        let pi = std::f64::consts::PI;
+        let scales = [
+            1.0 / (2.0 * pi * e_star * thickness_mm),
+            1.0 / (4.0 * pi * shear_kpa * thickness_mm),
+            -1.0 / (4.0 * pi * shear_kpa * thickness_mm),
+            1.0 / (2.0 * pi * shear_kpa * thickness_mm),
+        ];
+        let rows: Vec<[f64; 4]> = (0..count)
             .map(|k| {
-                let rho = k as f64 * step_mm / (2.0 * thickness_mm);
-                scale
-                    * weighted
-                        .iter()
-                        .map(|&(s, w)| w * bessel_j0(s * rho))
-                        .sum::<f64>()
+                // s ρ_s = t ρ with ρ_s = r/2h, ρ = r/h.
+                let rho_s = k as f64 * step_mm / (2.0 * thickness_mm);
+                let mut sums = [0.0; 4];
+                for &(s, w) in &weighted {
+                    let x = s * rho_s;
+                    let (j0, j1, j2) = (bessel_j0(x), bessel_j1(x), bessel_j2(x));
+                    sums[0] += w[0] * j0;
+                    sums[1] += w[1] * j0;
+                    sums[2] += w[2] * j2;
+                    sums[3] += w[3] * j1;
+                }
+                std::array::from_fn(|c| scales[c] * sums[c])
             })
             .collect();
-        LayerCorrection { step_mm, values }
+        LayerCorrection {
+            step_mm,
+            values: std::array::from_fn(|c| rows.iter().map(|r| r[c]).collect()),
+        }
     }
 
-    /// c(r) by linear interpolation in the table (mm per kPa·mm²).
-    pub(crate) fn at(&self, r_mm: f64) -> f64 {
+    /// Table `c` at r by linear interpolation.
+    fn table_at(&self, c: usize, r_mm: f64) -> f64 {
+        let values = &self.values[c];
         let t = r_mm / self.step_mm;
-        let k = (t.floor() as usize).min(self.values.len() - 2);
+        let k = (t.floor() as usize).min(values.len() - 2);
         let w = t - k as f64;
-        self.values[k] * (1.0 - w) + self.values[k + 1] * w
+        values[k] * (1.0 - w) + values[k + 1] * w
+    }
+
+    /// The correction to `component`'s point-force response at offset (x, y) mm (mm per
+    /// kPa·mm²; for [`Component::Zx`] and [`Component::Zy`] the surface's move into the gel).
+    pub(crate) fn at(&self, component: Component, x: f64, y: f64) -> f64 {
+        let r = x.hypot(y);
+        // cos θ, sin θ; at r = 0 the odd and anisotropic terms vanish (b(0) = f(0) = 0).
+        let (c, s) = if r > 0.0 { (x / r, y / r) } else { (0.0, 0.0) };
+        match component {
+            Component::Zz => self.table_at(0, r),
+            Component::Xx => self.table_at(1, r) + self.table_at(2, r) * (c * c - s * s),
+            Component::Yy => self.table_at(1, r) - self.table_at(2, r) * (c * c - s * s),
+            Component::Xy => self.table_at(2, r) * 2.0 * c * s,
+            Component::Zx => self.table_at(3, r) * c,
+            Component::Zy => self.table_at(3, r) * s,
+        }
     }
 }
 
@@ -290,6 +436,151 @@ mod tests {
         let table = LayerCorrection::new(e, nu, h, 12.0, 0.01);
         let r = 10.0;
         let expected = -1.0 / (std::f64::consts::PI * e_star * r);
-        assert!((table.at(r) - expected).abs() < 2e-3 * expected.abs());
+        assert!((table.at(Component::Zz, r, 0.0) - expected).abs() < 2e-3 * expected.abs());
+    }
+
+    #[test]
+    fn bessel_j1_j2_values() {
+        // Abramowitz & Stegun, Table 9.1.
+        for (x, j1, j2) in [
+            (0.0, 0.0, 0.0),
+            (0.5, 0.2422684577, 0.0306040235),
+            (1.0, 0.4400505857, 0.1149034849),
+            (5.0, -0.3275791376, 0.0465651163),
+            (10.0, 0.0434727462, 0.2546303137),
+        ] {
+            assert!((bessel_j1(x) - j1).abs() < 1e-8, "J1({x})");
+            assert!((bessel_j2(x) - j2).abs() < 1e-8, "J2({x})");
+        }
+    }
+
+    #[test]
+    fn layer_compliance_limits() {
+        for nu in [0.0, 0.3, 0.48, 0.5] {
+            // Half-space for kh → ∞ (Cerruti and the coupling of Johnson eq. 3.19a).
+            let c = LayerCompliance::at(40.0, nu);
+            assert!((c.longitudinal - (1.0 - nu)).abs() < 1e-12);
+            assert!((c.transverse - 1.0).abs() < 1e-12);
+            assert!((c.coupling - 0.5 * (1.0 - 2.0 * nu)).abs() < 1e-12);
+            // A sheared slab for kh → 0: u = q h / G.
+            let t = 1e-4;
+            let c = LayerCompliance::at(t, nu);
+            assert!((c.longitudinal - t).abs() < 1e-3 * t, "ν={nu}");
+            assert!((c.transverse - t).abs() < 1e-6 * t);
+        }
+        // Incompressible: the squeeze-flow coupling −t²/2 (see the lubrication test below).
+        let t = 1e-3;
+        let c = LayerCompliance::at(t, 0.5);
+        assert!((c.coupling + 0.5 * t * t).abs() < 1e-3 * t * t);
+    }
+
+    /// The normal compliance of the same general solution is Carbone & Mangialardi's (A.30),
+    /// derived separately: a check of the longitudinal and coupling terms' common algebra.
+    #[test]
+    fn normal_compliance_matches_carbone_mangialardi() {
+        for nu in [0.0, 0.3, 0.48, 0.5] {
+            for t in [0.05, 0.3, 1.0, 2.5, 8.0] {
+                let w = (-2.0f64 * t).exp();
+                let kappa = 3.0 - 4.0 * nu;
+                let d =
+                    kappa * (1.0 + w * w) + (10.0 - 24.0 * nu + 16.0 * nu * nu + 4.0 * t * t) * w;
+                let normal = (1.0 - nu) * (kappa * (1.0 - w * w) - 4.0 * t * w) / d;
+                let carbone = (1.0 - nu) * layer_ratio(2.0 * t, nu);
+                assert!(
+                    (normal - carbone).abs() < 1e-9 * carbone.max(1e-6),
+                    "ν={nu}, t={t}: {normal} vs {carbone}"
+                );
+            }
+        }
+    }
+
+    /// Cell coefficients of the layer: half-space cell plus the correction times the area.
+    fn layer_cell(layer: &LayerCorrection, c: Component, x: f64, y: f64, cell: f64) -> f64 {
+        halfspace_cell(c, x, y, cell, 300.0, 0.5) + layer.at(c, x, y) * cell * cell
+    }
+
+    /// Sums of the layer's coefficients over offsets much wider than the layer are its response
+    /// to uniform loads, known from slab theory: a uniform shear traction q shears it by q h/G
+    /// (and nothing across), and a pressure gradient ∂p/∂x on an incompressible layer drives the
+    /// squeeze flow whose surface moves by −h² ∂p/∂x/(2G) (lubrication: G u'' = ∂p/∂x,
+    /// u(−h) = 0, u'(0) = 0).
+    #[test]
+    fn layer_sums_are_slab_theory() {
+        let (e, nu, h, cell) = (300.0, 0.5, 1.0, 0.1);
+        let g = e / (2.0 * (1.0 + nu));
+        let half_cells = 160;
+        let r_max = 1.5 * half_cells as f64 * cell;
+        let layer = LayerCorrection::new(e, nu, h, r_max, 0.01);
+        let (mut shear, mut across, mut squeeze) = (0.0, 0.0, 0.0);
+        for j in -half_cells..=half_cells {
+            for i in -half_cells..=half_cells {
+                let (x, y) = (i as f64 * cell, j as f64 * cell);
+                shear += layer_cell(&layer, Component::Xx, x, y, cell);
+                across += layer_cell(&layer, Component::Xy, x, y, cell);
+                squeeze += layer_cell(&layer, Component::Zx, x, y, cell) * x;
+            }
+        }
+        let shear_expected = h / g;
+        assert!(
+            (shear - shear_expected).abs() < 1e-2 * shear_expected,
+            "uniform shear: {shear} vs {shear_expected}"
+        );
+        assert!(across.abs() < 1e-9 * shear_expected);
+        let squeeze_expected = -h * h / (2.0 * g);
+        assert!(
+            (squeeze - squeeze_expected).abs() < 1e-2 * squeeze_expected.abs(),
+            "squeeze flow: {squeeze} vs {squeeze_expected}"
+        );
+    }
+
+    #[test]
+    fn layer_corrections_cancel_cerruti_far_away() {
+        let (e, nu, h) = (300.0, 0.3, 1.0);
+        let g = e / (2.0 * (1.0 + nu));
+        let table = LayerCorrection::new(e, nu, h, 12.0, 0.01);
+        let (x, y) = (6.0, 8.0);
+        let r = 10.0;
+        let pi = std::f64::consts::PI;
+        let cases = [
+            (
+                Component::Xx,
+                -((1.0 - nu) / r + nu * x * x / r.powi(3)) / (2.0 * pi * g),
+            ),
+            (Component::Xy, -nu * x * y / r.powi(3) / (2.0 * pi * g)),
+            (
+                Component::Zx,
+                -(1.0 - 2.0 * nu) * x / (r * r) / (4.0 * pi * g),
+            ),
+        ];
+        for (c, expected) in cases {
+            let got = table.at(c, x, y);
+            assert!(
+                (got - expected).abs() < 5e-3 * expected.abs(),
+                "{c:?}: {got} vs {expected}"
+            );
+        }
+    }
+
+    #[test]
+    fn coupling_cell_far_field_is_the_point_force() {
+        let (e, nu, cell) = (300.0, 0.3, 0.05);
+        let g = e / (2.0 * (1.0 + nu));
+        let (x, y) = (1.3, -0.7);
+        let r2 = x * x + y * y;
+        let area = cell * cell;
+        let pi = std::f64::consts::PI;
+        for (c, along) in [(Component::Zx, x), (Component::Zy, y)] {
+            let expected = area * (1.0 - 2.0 * nu) * along / (4.0 * pi * g * r2);
+            let u = halfspace_cell(c, x, y, cell, e, nu);
+            assert!(
+                (u - expected).abs() < 1e-3 * expected.abs(),
+                "{c:?}: {u} vs {expected}"
+            );
+        }
+        // Odd in its own axis, even in the other, zero at the cell's own centre.
+        let zx = |x, y| halfspace_cell(Component::Zx, x, y, cell, e, nu);
+        assert_eq!(zx(0.0, 0.3), 0.0);
+        assert!((zx(0.2, 0.3) + zx(-0.2, 0.3)).abs() < 1e-15);
+        assert!((zx(0.2, 0.3) - zx(0.2, -0.3)).abs() < 1e-15);
     }
 }

@@ -46,6 +46,8 @@ pub struct StudyOptions {
     pub repeats: usize,
     /// Indentation depths over gel thickness of the depth sweep.
     pub depth_over_thickness: Vec<f64>,
+    /// Friction coefficients of the depth sweep (each depth is pressed at each).
+    pub depth_friction: Vec<f64>,
     /// Elements per contact radius of the finite-element reference of the depth sweep (solved
     /// on a grid of half the sweep's cell).
     pub reference_elements_per_radius: f64,
@@ -60,6 +62,7 @@ impl StudyOptions {
             tolerance: 0.02,
             repeats: 3,
             depth_over_thickness: vec![0.01, 0.05, 0.1, 0.2, 0.3, 0.4, 0.6, 0.8, 1.0, 1.2],
+            depth_friction: vec![0.0, 0.5, 1.0, 1.5],
             reference_elements_per_radius: 12.0,
         }
     }
@@ -72,6 +75,7 @@ impl StudyOptions {
             tolerance: 0.02,
             repeats: 1,
             depth_over_thickness: vec![0.05, 0.2, 0.4, 1.2],
+            depth_friction: vec![0.0, 1.0],
             reference_elements_per_radius: 8.0,
         }
     }
@@ -164,8 +168,10 @@ pub struct StudyPoint {
 pub struct StabilityPoint {
     /// Swept parameter (`depth_over_thickness`, `sharpness`, …).
     pub sweep: &'static str,
-    /// Its value as shown on the map (`δ/h 0.4`, `cone 10°`, `box edge`).
+    /// Its value as shown on the map (`δ/h 0.4`, `δ/h 0.4, μ 1`, `cone 10°`, `box edge`).
     pub label: String,
+    /// The gel's friction coefficient.
+    pub friction: f64,
     /// Indentation depth over gel thickness of the depth sweep (0 elsewhere).
     pub depth_over_h: f64,
     /// Contact radius over gel thickness of the depth sweep (0 elsewhere; the rigid footprint's).
@@ -472,6 +478,12 @@ struct SweepPoint {
     a_over_h: f64,
 }
 
+impl SweepPoint {
+    fn friction(&self) -> f64 {
+        self.setup.friction
+    }
+}
+
 /// The reference names of the stability map, by check.
 fn reference_name(case: Option<&Case>, reference_rung: SolverKind) -> &'static str {
     if case.is_none() && reference_rung == SolverKind::Fem {
@@ -487,7 +499,7 @@ fn reference_name(case: Option<&Case>, reference_rung: SolverKind) -> &'static s
     }
 }
 
-fn stability_sweeps(cell_mm: f64, depths: &[f64]) -> Vec<SweepPoint> {
+fn stability_sweeps(cell_mm: f64, depths: &[f64], frictions: &[f64]) -> Vec<SweepPoint> {
     let mut points = Vec::new();
     let mut push = |sweep, label: String, setup, case, cell_mm| {
         points.push(SweepPoint {
@@ -501,31 +513,39 @@ fn stability_sweeps(cell_mm: f64, depths: &[f64]) -> Vec<SweepPoint> {
             a_over_h: 0.0,
         })
     };
-    // A 5 mm sphere on a 2 mm incompressible layer, frictionless, pressed up to and past the
-    // layer's thickness, against the finite-strain (neo-Hookean) finite elements: linear theory
-    // is not the answer at depth. δ ≥ h no rung may accept.
+    // A 5 mm sphere on a 2 mm incompressible layer pressed up to and past the layer's
+    // thickness, at each friction coefficient, against the finite-strain (neo-Hookean) finite
+    // elements with the same friction: linear theory is not the answer at depth, and friction
+    // there stiffens the press beyond what the linear coupling of the layer gives. δ ≥ h no
+    // rung may accept.
     let mut depth_points = Vec::new();
-    for &ratio in depths {
-        let (radius, h) = (5.0, DEPTH_SWEEP_GEL_MM);
-        let depth = ratio * h;
-        let footprint = (2.0f64 * radius * depth - depth * depth).max(0.0).sqrt();
-        let setup = Setup {
-            poisson: 0.5,
-            thickness_mm: h,
-            friction: 0.0,
-            box_mm: 3.2 * footprint + 1.0,
-            ..Setup::sphere(radius, depth)
-        };
-        depth_points.push(SweepPoint {
-            sweep: "depth_over_thickness",
-            label: format!("δ/h {ratio}"),
-            setup,
-            case: None,
-            cell_mm,
-            reference_rung: SolverKind::Fem,
-            depth_over_h: ratio,
-            a_over_h: footprint / h,
-        });
+    for &mu in frictions {
+        for &ratio in depths {
+            let (radius, h) = (5.0, DEPTH_SWEEP_GEL_MM);
+            let depth = ratio * h;
+            let footprint = (2.0f64 * radius * depth - depth * depth).max(0.0).sqrt();
+            let setup = Setup {
+                poisson: 0.5,
+                thickness_mm: h,
+                friction: mu,
+                box_mm: 3.2 * footprint + 1.0,
+                ..Setup::sphere(radius, depth)
+            };
+            depth_points.push(SweepPoint {
+                sweep: "depth_over_thickness",
+                label: if mu == 0.0 {
+                    format!("δ/h {ratio}")
+                } else {
+                    format!("δ/h {ratio}, μ {mu}")
+                },
+                setup,
+                case: None,
+                cell_mm,
+                reference_rung: SolverKind::Fem,
+                depth_over_h: ratio,
+                a_over_h: footprint / h,
+            });
+        }
     }
     for angle in [80.0, 60.0, 45.0, 30.0, 20.0, 10.0] {
         push(
@@ -648,7 +668,11 @@ pub fn run_study(options: &StudyOptions, progress: &mut dyn FnMut(&str)) -> Stud
     }
 
     let mut stability = Vec::new();
-    let sweeps = stability_sweeps(options.stability_cell_mm, &options.depth_over_thickness);
+    let sweeps = stability_sweeps(
+        options.stability_cell_mm,
+        &options.depth_over_thickness,
+        &options.depth_friction,
+    );
     for point in sweeps {
         let reference = reference_name(point.case.as_ref(), point.reference_rung);
         // Without a closed form (the box edge, a press at depth) the reference is the half-space
@@ -702,6 +726,7 @@ pub fn run_study(options: &StudyOptions, progress: &mut dyn FnMut(&str)) -> Stud
             stability.push(StabilityPoint {
                 sweep: point.sweep,
                 label: point.label.clone(),
+                friction: point.friction(),
                 depth_over_h: point.depth_over_h,
                 a_over_h: point.a_over_h,
                 rung,
@@ -770,6 +795,7 @@ pub fn solver_table(points: &[StudyPoint], stability: &[StabilityPoint]) -> Solv
                 a_over_cell: cells,
                 a_over_h: 1.0 / THICK_GEL_MM,
                 depth_over_h: 0.0,
+                friction: 0.0,
                 rel_error: base_error,
                 ms_per_frame: base_ms,
             });
@@ -790,6 +816,7 @@ pub fn solver_table(points: &[StudyPoint], stability: &[StabilityPoint]) -> Solv
                     a_over_cell: cells,
                     a_over_h: chi,
                     depth_over_h: 0.0,
+                    friction: 0.0,
                     rel_error: base_error.max(e),
                     ms_per_frame: base_ms.max(ms),
                 });
@@ -805,6 +832,7 @@ pub fn solver_table(points: &[StudyPoint], stability: &[StabilityPoint]) -> Solv
                 a_over_cell: p.a_over_h * DEPTH_SWEEP_GEL_MM / p.cell_mm,
                 a_over_h: p.a_over_h,
                 depth_over_h: p.depth_over_h,
+                friction: p.friction,
                 rel_error: m
                     .rel_error
                     .filter(|_| matches!(m.outcome, Outcome::Ok | Outcome::OverTolerance))
@@ -857,14 +885,16 @@ impl Study {
     /// `stability.csv`: one row per stability point.
     pub fn stability_csv(&self) -> String {
         let mut out = String::from(
-            "sweep,value,rung,cell_mm,reference,reference_n,simulated_n,rel_error,outcome,reason\n",
+            "sweep,value,friction,rung,cell_mm,reference,reference_n,simulated_n,rel_error,outcome,\
+             reason\n",
         );
         for p in &self.stability {
             let m = &p.measurement;
             out.push_str(&format!(
-                "{},{},{},{},{},{},{},{},{},{}\n",
+                "{},{},{},{},{},{},{},{},{},{},{}\n",
                 p.sweep,
                 csv_text(&p.label),
+                p.friction,
                 p.rung.name(),
                 p.cell_mm,
                 csv_text(p.reference),

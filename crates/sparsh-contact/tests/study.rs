@@ -132,7 +132,7 @@ fn quick_study_is_complete_and_physical() {
                 .iter()
                 .filter(|r| r.rung == rung && r.depth_over_h > 0.0)
                 .count(),
-            options.depth_over_thickness.len()
+            options.depth_over_thickness.len() * options.depth_friction.len()
         );
     }
     // At depth the finite elements are the reference of the sweep and meet it; the boundary
@@ -159,6 +159,16 @@ fn quick_study_is_complete_and_physical() {
             .expect("error")
     };
     assert!(layered("δ/h 0.4").abs() > layered("δ/h 0.05").abs());
+    // Friction at depth: the finite elements' press with μ = 1 is stiffer than the frictionless
+    // one, and the layered rung, whose linear coupling holds only part of that, misses by more.
+    let reference = |label| {
+        depth(SolverKind::Layered, label)
+            .measurement
+            .reference_n
+            .expect("reference")
+    };
+    assert!(reference("δ/h 0.4, μ 1") > 1.02 * reference("δ/h 0.4"));
+    assert!(layered("δ/h 0.4, μ 1").abs() > layered("δ/h 0.4").abs());
     let text = study.table.to_csv();
     assert_eq!(
         sparsh_scene::auto::SolverTable::parse(&text).expect("round trip"),

@@ -23,7 +23,7 @@ fn the_half_space_limit_is_the_layer_effect() {
     let layer_error = |a_over_h: f64| 1.0 - 1.0 / bonded_layer_force_factor(a_over_h).unwrap();
     let grid_error = 0.005;
     for tolerance in [0.01, 0.02, 0.05, 0.1, 0.3] {
-        let limits = RungLimits::of(table, SolverKind::Halfspace, tolerance);
+        let limits = RungLimits::of(table, SolverKind::Halfspace, tolerance, 0.0);
         let limit = limits
             .max_a_over_h
             .expect("meets loose tolerances somewhere");
@@ -42,10 +42,10 @@ fn the_half_space_limit_is_the_layer_effect() {
     }
 }
 
-/// Each rung's depth limit at the study's pass mark (2 %) is the deepest swept δ/h up to which
-/// the stability map passes every swept depth (the sweep's shallowest depth stands for the
-/// small-strain regime, so a rung's limit is never shallower than it), and the geometric rung
-/// has no a/h range at all.
+/// Each rung's depth limit at the study's pass mark (2 %) and each swept friction is the deepest
+/// swept δ/h up to which the stability map passes every swept depth at that friction and every
+/// smaller one (the sweep's shallowest depth stands for the small-strain regime, so a rung's limit
+/// is never shallower than it), and the geometric rung has no a/h range at all.
 #[test]
 fn depth_limits_match_the_stability_map() {
     let path = concat!(
@@ -55,42 +55,60 @@ fn depth_limits_match_the_stability_map() {
     let mut reader = csv::Reader::from_path(path).unwrap();
     let headers = reader.headers().unwrap().clone();
     let column = |name: &str| headers.iter().position(|h| h == name).unwrap();
-    let (sweep, value, rung, outcome) = (
+    let (sweep, value, friction, rung, outcome) = (
         column("sweep"),
         column("value"),
+        column("friction"),
         column("rung"),
         column("outcome"),
     );
-    let mut map: Vec<(SolverKind, f64, bool)> = Vec::new();
+    // (rung, friction, depth, passed)
+    let mut map: Vec<(SolverKind, f64, f64, bool)> = Vec::new();
     for record in reader.records() {
         let record = record.unwrap();
         if &record[sweep] != "depth_over_thickness" {
             continue;
         }
-        let depth: f64 = record[value].trim_start_matches("δ/h ").parse().unwrap();
+        let depth: f64 = record[value]
+            .trim_start_matches("δ/h ")
+            .split(',')
+            .next()
+            .unwrap()
+            .parse()
+            .unwrap();
         map.push((
             record[rung].parse().unwrap(),
+            record[friction].parse().unwrap(),
             depth,
             &record[outcome] == "ok",
         ));
     }
+    let mut frictions: Vec<f64> = map.iter().map(|m| m.1).collect();
+    frictions.sort_by(f64::total_cmp);
+    frictions.dedup();
+    assert!(frictions.len() >= 4, "swept frictions {frictions:?}");
     for kind in SolverKind::ALL {
-        let mut sweep: Vec<(f64, bool)> = map
-            .iter()
-            .filter(|m| m.0 == kind)
-            .map(|m| (m.1, m.2))
-            .collect();
-        sweep.sort_by(|a, b| a.0.total_cmp(&b.0));
-        assert!(sweep.len() >= 6, "{kind:?}: {} swept depths", sweep.len());
-        let from_map = sweep
-            .iter()
-            .take_while(|s| s.1)
-            .last()
-            .map_or(sweep[0].0, |s| s.0);
-        let limits = RungLimits::of(SolverTable::builtin(), kind, 0.02);
-        assert_eq!(limits.max_depth_over_h, from_map, "{kind:?}");
+        for &mu in &frictions {
+            let mut depths: Vec<f64> = map.iter().filter(|m| m.0 == kind).map(|m| m.2).collect();
+            depths.sort_by(f64::total_cmp);
+            depths.dedup();
+            assert!(depths.len() >= 6, "{kind:?}: {} swept depths", depths.len());
+            let passed = |d: f64| {
+                map.iter()
+                    .filter(|m| m.0 == kind && m.2 == d && m.1 <= mu)
+                    .all(|m| m.3)
+            };
+            let from_map = depths
+                .iter()
+                .copied()
+                .take_while(|&d| passed(d))
+                .last()
+                .unwrap_or(depths[0]);
+            let limits = RungLimits::of(SolverTable::builtin(), kind, 0.02, mu);
+            assert_eq!(limits.max_depth_over_h, from_map, "{kind:?} at μ {mu}");
+        }
     }
-    let geometric = RungLimits::of(SolverTable::builtin(), SolverKind::Geometric, 0.02);
+    let geometric = RungLimits::of(SolverTable::builtin(), SolverKind::Geometric, 0.02, 1.0);
     assert_eq!(geometric.max_a_over_h, None);
     assert_eq!(geometric.check(true, 0.1, 0.0).name(), "rung");
 }

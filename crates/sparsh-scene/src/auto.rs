@@ -33,6 +33,9 @@ pub struct TableRow {
     /// Indentation depth over gel thickness: 0 for the accuracy study's shallow presses, the
     /// swept depth for the rows of the depth sweep (against finite-strain finite elements).
     pub depth_over_h: f64,
+    /// Friction coefficient of the depth sweep's row (0 on the accuracy study's rows, which
+    /// are read whatever the scene's friction).
+    pub friction: f64,
     /// Worst |relative force error| measured there (∞ where a case failed).
     pub rel_error: f64,
     /// Worst time per frame measured there (ms).
@@ -46,7 +49,7 @@ pub struct SolverTable {
     pub rows: Vec<TableRow>,
 }
 
-const HEADER: &str = "rung,a_over_cell,a_over_h,depth_over_h,rel_error,ms_per_frame";
+const HEADER: &str = "rung,a_over_cell,a_over_h,depth_over_h,friction,rel_error,ms_per_frame";
 
 impl SolverTable {
     /// The compiled-in table.
@@ -73,8 +76,8 @@ impl SolverTable {
             .map(|(n, line)| {
                 let f: Vec<&str> = line.split(',').map(str::trim).collect();
                 let bad = |what: &str| format!("line {}: {what}", n + 1);
-                if f.len() != 6 {
-                    return Err(bad("needs 6 fields"));
+                if f.len() != 7 {
+                    return Err(bad("needs 7 fields"));
                 }
                 let num = |s: &str| {
                     s.parse::<f64>()
@@ -85,16 +88,18 @@ impl SolverTable {
                     a_over_cell: num(f[1])?,
                     a_over_h: num(f[2])?,
                     depth_over_h: num(f[3])?,
-                    rel_error: num(f[4])?,
-                    ms_per_frame: num(f[5])?,
+                    friction: num(f[4])?,
+                    rel_error: num(f[5])?,
+                    ms_per_frame: num(f[6])?,
                 };
                 if !(row.a_over_cell > 0.0
                     && row.a_over_h >= 0.0
                     && row.depth_over_h >= 0.0
+                    && row.friction >= 0.0
                     && row.rel_error >= 0.0)
                 {
                     return Err(bad(
-                        "a_over_cell must be > 0, a_over_h, depth_over_h and rel_error ≥ 0",
+                        "a_over_cell must be > 0, a_over_h, depth_over_h, friction and rel_error ≥ 0",
                     ));
                 }
                 Ok(row)
@@ -107,7 +112,8 @@ impl SolverTable {
     pub const DESCRIPTION: &'static str = "worst |relative force error| and worst ms per frame of \
         each rung at each studied contact radius in cells (a_over_cell) and contact radius over gel \
         thickness (a_over_h) with depth_over_h = 0, and along the depth sweep (depth_over_h > 0, \
-        against finite-strain finite elements); read by solver = \"auto\"";
+        at each swept friction coefficient, against finite-strain finite elements); read by \
+        solver = \"auto\" and the validity limits";
 
     /// CSV text (RFC 4180: the header row first, nothing before it), one row per studied point.
     pub fn to_csv(&self) -> String {
@@ -115,11 +121,12 @@ impl SolverTable {
         out.push('\n');
         for r in &self.rows {
             out.push_str(&format!(
-                "{},{},{},{},{:e},{:e}\n",
+                "{},{},{},{},{},{:e},{:e}\n",
                 r.rung.name(),
                 r.a_over_cell,
                 r.a_over_h,
                 r.depth_over_h,
+                r.friction,
                 r.rel_error,
                 r.ms_per_frame
             ));
@@ -146,14 +153,17 @@ impl SolverTable {
 }
 
 impl SolverTable {
-    /// The error of `rung` at indentation depth over gel thickness `depth_over_h`, from the depth
-    /// sweep on the hard side: the worst error of the swept depths up to the shallowest one at or
-    /// past the query (so a rung that once missed does not come back deeper; ∞ past the deepest
-    /// swept depth). Presses no deeper than the shallowest swept depth are the small-strain
-    /// regime the rest of the table covers (the sweep is a sphere on a thin layer, so its
-    /// shallow rows also hold the layer's effect, which a/h already bounds): 0 there, and when
-    /// the table has no depth rows for the rung.
-    pub fn depth_error(&self, rung: SolverKind, depth_over_h: f64) -> f64 {
+    /// The error of `rung` at indentation depth over gel thickness `depth_over_h` with friction
+    /// coefficient `friction`, from the depth sweep on the hard side in both: the worst error of
+    /// the swept depths up to the shallowest one at or past the query, over the swept frictions
+    /// up to the smallest one at or above the scene's (so a rung that once missed does not come
+    /// back deeper or with more friction; ∞ past the deepest swept depth). Past the largest swept
+    /// friction, every swept friction counts: a normal press sticks wholly there, and more
+    /// friction changes nothing. Presses no deeper than the shallowest swept depth are the
+    /// small-strain regime the rest of the table covers (the sweep is a sphere on a thin layer,
+    /// so its shallow rows also hold the layer's effect, which a/h already bounds): 0 there, and
+    /// when the table has no depth rows for the rung.
+    pub fn depth_error(&self, rung: SolverKind, depth_over_h: f64, friction: f64) -> f64 {
         let rows: Vec<&TableRow> = self
             .rows
             .iter()
@@ -171,9 +181,28 @@ impl SolverTable {
         else {
             return f64::INFINITY;
         };
+        let friction_bound = rows
+            .iter()
+            .map(|r| r.friction)
+            .filter(|&m| m >= friction * (1.0 - 1e-9))
+            .reduce(f64::min)
+            .unwrap_or(f64::INFINITY);
         rows.iter()
-            .filter(|r| r.depth_over_h <= bound)
+            .filter(|r| r.depth_over_h <= bound && r.friction <= friction_bound)
             .fold(0.0, |worst, r| worst.max(r.rel_error))
+    }
+
+    /// The friction coefficients of the depth sweep, ascending.
+    pub fn swept_frictions(&self) -> Vec<f64> {
+        let mut out: Vec<f64> = self
+            .rows
+            .iter()
+            .filter(|r| r.depth_over_h > 0.0)
+            .map(|r| r.friction)
+            .collect();
+        out.sort_by(f64::total_cmp);
+        out.dedup();
+        out
     }
 }
 
@@ -221,7 +250,7 @@ pub fn candidates(
     let depth_over_h = depth_mm / gel.thickness_mm;
     let mut out = Vec::new();
     for solver in SolverKind::ALL {
-        let depth_error = table.depth_error(solver, depth_over_h);
+        let depth_error = table.depth_error(solver, depth_over_h, gel.friction);
         for stride in 1..=sensor.width_px.min(sensor.height_px) {
             if !(sensor.width_px.is_multiple_of(stride) && sensor.height_px.is_multiple_of(stride))
             {

@@ -7,7 +7,8 @@
 //!   half-space rung ignores the layer, so it stops at thin contacts on thick gels; points where
 //!   a rung declined the case are the rung's own refusals and set no limit here);
 //! - indentation depth over gel thickness δ/h: the deepest swept depth up to which every swept
-//!   depth meets the tolerance against finite-strain finite elements ([`SolverTable::depth_error`]).
+//!   depth meets the tolerance against finite-strain finite elements, at the scene's friction
+//!   coefficient ([`SolverTable::depth_error`]: friction at depth is where the rungs part).
 //!
 //! A rung that meets the tolerance at no studied point (the geometric rung makes no force claim)
 //! is outside its validity whenever it is in contact. The mechanics grid's resolution is not a
@@ -137,6 +138,8 @@ pub struct RungLimits {
     pub rung: SolverKind,
     /// Relative force tolerance the limits are for.
     pub tolerance: f64,
+    /// Friction coefficient the depth limit is for.
+    pub friction: f64,
     /// Largest contact radius over gel thickness where it holds; `None` if it holds at no
     /// studied point.
     pub max_a_over_h: Option<f64>,
@@ -148,8 +151,8 @@ pub struct RungLimits {
 }
 
 impl RungLimits {
-    /// The limits of `rung` at `tolerance` in `table`.
-    pub fn of(table: &SolverTable, rung: SolverKind, tolerance: f64) -> RungLimits {
+    /// The limits of `rung` at `tolerance` with friction coefficient `friction` in `table`.
+    pub fn of(table: &SolverTable, rung: SolverKind, tolerance: f64, friction: f64) -> RungLimits {
         let shallow = || {
             table
                 .rows
@@ -183,13 +186,14 @@ impl RungLimits {
             Some(&shallowest) => depths
                 .iter()
                 .copied()
-                .take_while(|&d| table.depth_error(rung, d) <= tolerance)
+                .take_while(|&d| table.depth_error(rung, d, friction) <= tolerance)
                 .last()
                 .unwrap_or(shallowest),
         };
         RungLimits {
             rung,
             tolerance,
+            friction,
             max_a_over_h,
             max_depth_over_h,
             best_rel_error,
@@ -238,6 +242,7 @@ mod tests {
             a_over_cell,
             a_over_h,
             depth_over_h: depth,
+            friction: 0.0,
             rel_error: e,
             ms_per_frame: 1.0,
         }
@@ -263,7 +268,7 @@ mod tests {
                 row(H, 16.0, 0.8, 0.5, 0.025),
             ],
         };
-        let limits = RungLimits::of(&table, H, 0.02);
+        let limits = RungLimits::of(&table, H, 0.02, 0.0);
         assert_eq!(limits.max_a_over_h, Some(0.1));
         assert_eq!(limits.max_depth_over_h, 0.3);
         assert_eq!(limits.best_rel_error, 0.01);
@@ -278,10 +283,10 @@ mod tests {
             }
         );
         assert_eq!(limits.check(true, 0.2, 0.31).name(), "depth_over_h");
-        let loose = RungLimits::of(&table, H, 0.04);
+        let loose = RungLimits::of(&table, H, 0.04, 0.0);
         assert_eq!(loose.max_a_over_h, Some(1.0));
         assert_eq!(loose.max_depth_over_h, 0.5);
-        let strict = RungLimits::of(&table, H, 0.001);
+        let strict = RungLimits::of(&table, H, 0.001, 0.0);
         assert_eq!(strict.max_a_over_h, None);
         assert_eq!(strict.check(true, 0.0, 0.0).name(), "rung");
         assert!(strict.check(false, 0.0, 0.0).is_ok());

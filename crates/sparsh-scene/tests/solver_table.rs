@@ -4,26 +4,30 @@
 use sparsh_scene::SolverKind;
 use sparsh_scene::auto::{AutoChoice, SolverTable, choose, most_accurate};
 
-const TABLE: &str = "rung,a_over_cell,a_over_h,depth_over_h,rel_error,ms_per_frame
-halfspace,5,0.002,0,0.03,1
-halfspace,10,0.002,0,0.01,4
-halfspace,10,0.5,0,0.4,4
-layered,5,0.002,0,0.03,2
-layered,5,0.5,0,0.05,2
-layered,10,0.002,0,0.01,8
-layered,10,0.5,0,0.012,8
-geometric,5,0.002,0,inf,0.1
-layered,3,0.5,0.1,0.01,8
-layered,3,0.8,0.3,0.035,8
-layered,3,0.9,0.4,0.001,8
-fem,10,0.5,0,0.008,2000
-fem,3,0.8,0.3,0.004,2000
+const TABLE: &str = "rung,a_over_cell,a_over_h,depth_over_h,friction,rel_error,ms_per_frame
+halfspace,5,0.002,0,0,0.03,1
+halfspace,10,0.002,0,0,0.01,4
+halfspace,10,0.5,0,0,0.4,4
+layered,5,0.002,0,0,0.03,2
+layered,5,0.5,0,0,0.05,2
+layered,10,0.002,0,0,0.01,8
+layered,10,0.5,0,0,0.012,8
+geometric,5,0.002,0,0,inf,0.1
+layered,3,0.5,0.1,0,0.01,8
+layered,3,0.8,0.3,0,0.015,8
+layered,3,0.9,0.4,0,0.018,8
+layered,3,0.5,0.1,1,0.012,8
+layered,3,0.8,0.3,1,0.035,8
+layered,3,0.9,0.4,1,0.001,8
+fem,10,0.5,0,0,0.008,2000
+fem,3,0.8,0.3,0,0.004,2000
+fem,3,0.8,0.3,1,0.004,2000
 ";
 
 #[test]
 fn table_parses_and_round_trips() {
     let table = SolverTable::parse(TABLE).unwrap();
-    assert_eq!(table.rows.len(), 13);
+    assert_eq!(table.rows.len(), 17);
     assert!(table.rows[7].rel_error.is_infinite());
     assert_eq!(SolverTable::parse(&table.to_csv()).unwrap(), table);
     for (bad, why) in [
@@ -32,25 +36,34 @@ fn table_parses_and_round_trips() {
             "rung,a_over_cell,a_over_h,rel_error,ms_per_frame\nlayered,1,1,1,1\n",
             "first row",
         ),
+        // the header of tables written before the friction column
         (
-            "rung,a_over_cell,a_over_h,depth_over_h,rel_error,ms_per_frame\nbogus,1,1,0,1,1\n",
+            "rung,a_over_cell,a_over_h,depth_over_h,rel_error,ms_per_frame\nlayered,1,1,0,1,1\n",
+            "first row",
+        ),
+        (
+            "rung,a_over_cell,a_over_h,depth_over_h,friction,rel_error,ms_per_frame\nbogus,1,1,0,0,1,1\n",
             "unknown solver",
         ),
         (
-            "rung,a_over_cell,a_over_h,depth_over_h,rel_error,ms_per_frame\nlayered,1,1,0,x,1\n",
+            "rung,a_over_cell,a_over_h,depth_over_h,friction,rel_error,ms_per_frame\nlayered,1,1,0,0,x,1\n",
             "not a number",
         ),
         (
-            "rung,a_over_cell,a_over_h,depth_over_h,rel_error,ms_per_frame\nlayered,0,1,0,1,1\n",
+            "rung,a_over_cell,a_over_h,depth_over_h,friction,rel_error,ms_per_frame\nlayered,0,1,0,0,1,1\n",
             "must be > 0",
         ),
         (
-            "rung,a_over_cell,a_over_h,depth_over_h,rel_error,ms_per_frame\nlayered,1,1,-1,1,1\n",
+            "rung,a_over_cell,a_over_h,depth_over_h,friction,rel_error,ms_per_frame\nlayered,1,1,-1,0,1,1\n",
             "depth_over_h",
         ),
         (
-            "rung,a_over_cell,a_over_h,depth_over_h,rel_error,ms_per_frame\nlayered,1,1\n",
-            "6 fields",
+            "rung,a_over_cell,a_over_h,depth_over_h,friction,rel_error,ms_per_frame\nlayered,1,1,0.1,-1,1,1\n",
+            "friction",
+        ),
+        (
+            "rung,a_over_cell,a_over_h,depth_over_h,friction,rel_error,ms_per_frame\nlayered,1,1\n",
+            "7 fields",
         ),
     ] {
         let err = SolverTable::parse(bad).unwrap_err();
@@ -117,7 +130,7 @@ fn choice_is_the_cheapest_that_meets_the_tolerance() {
 }
 
 /// The shipped table and what the study writes are plain CSV: the `csv` crate's default reader
-/// takes the header from the first line and every row has the header's six fields.
+/// takes the header from the first line and every row has the header's seven fields.
 #[test]
 fn tables_read_with_default_csv_readers() {
     let written = SolverTable::parse(TABLE).unwrap().to_csv();
@@ -131,6 +144,7 @@ fn tables_read_with_default_csv_readers() {
                 "a_over_cell",
                 "a_over_h",
                 "depth_over_h",
+                "friction",
                 "rel_error",
                 "ms_per_frame"
             ]
@@ -138,7 +152,7 @@ fn tables_read_with_default_csv_readers() {
         let rows: Vec<csv::StringRecord> = reader.records().map(|r| r.unwrap()).collect();
         assert!(!rows.is_empty());
         for r in &rows {
-            assert_eq!(r.len(), 6, "{r:?}");
+            assert_eq!(r.len(), 7, "{r:?}");
             r[1].parse::<f64>().unwrap();
         }
     }
@@ -146,30 +160,43 @@ fn tables_read_with_default_csv_readers() {
 
 #[test]
 fn a_deep_press_takes_the_finite_elements() {
-    // The depth sweep's rows bound each rung's error by the depth over thickness: a layered rung
-    // good to 1 % at δ/h = 0.1 misses 2 % at 0.3, where only the finite elements hold.
+    // The depth sweep's rows bound each rung's error by the depth over thickness and the
+    // friction: frictionless, a layered rung holds 2 % to δ/h = 0.4; with μ = 1 it misses 2 % at
+    // 0.3, where only the finite elements hold.
     let table = SolverTable::parse(TABLE).unwrap();
+    let layered =
+        |depth: f64, friction: f64| table.depth_error(SolverKind::Layered, depth, friction);
     // Shallower than the sweep: the small-strain rows decide.
-    assert_eq!(table.depth_error(SolverKind::Layered, 0.05), 0.0);
-    assert_eq!(table.depth_error(SolverKind::Layered, 0.1), 0.0);
-    assert_eq!(table.depth_error(SolverKind::Layered, 0.15), 0.035);
+    assert_eq!(layered(0.05, 1.0), 0.0);
+    assert_eq!(layered(0.1, 1.0), 0.0);
+    assert_eq!(layered(0.15, 0.0), 0.015);
+    assert_eq!(layered(0.35, 0.0), 0.018);
+    assert_eq!(layered(0.15, 1.0), 0.035);
     // a rung that missed at 0.3 is not trusted again at 0.4, where it happens to land close
-    assert_eq!(table.depth_error(SolverKind::Layered, 0.35), 0.035);
-    assert!(table.depth_error(SolverKind::Layered, 0.5).is_infinite());
-    assert_eq!(table.depth_error(SolverKind::Halfspace, 0.5), 0.0);
+    assert_eq!(layered(0.35, 1.0), 0.035);
+    // between swept frictions the larger one bounds it; past the largest, all of them
+    assert_eq!(layered(0.15, 0.5), 0.035);
+    assert_eq!(layered(0.15, 2.0), 0.035);
+    assert!(layered(0.5, 0.0).is_infinite());
+    assert_eq!(table.depth_error(SolverKind::Halfspace, 0.5, 1.0), 0.0);
+    assert_eq!(table.swept_frictions(), [0.0, 1.0]);
     let mut sensor = sparsh_scene::SensorConfig::preset("digit").unwrap();
     (sensor.width_px, sensor.height_px, sensor.mm_per_px) = (100, 100, 0.1);
-    let gel = sparsh_scene::Gel {
-        thickness_mm: 2.0,
-        ..sparsh_scene::Gel::default()
-    };
-    let pick = |depth_mm: f64| {
+    let pick = |depth_mm: f64, friction: f64| {
+        let gel = sparsh_scene::Gel {
+            thickness_mm: 2.0,
+            friction,
+            ..sparsh_scene::Gel::default()
+        };
         let all = sparsh_scene::auto::candidates(&table, &sensor, &gel, 1.0, depth_mm, 0.02);
         choose(&all).unwrap()
     };
-    let shallow = pick(0.1);
+    let shallow = pick(0.1, 1.0);
     assert_eq!(shallow.solver, SolverKind::Layered);
-    let deep = pick(0.5);
+    let deep = pick(0.5, 1.0);
     assert_eq!(deep.solver, SolverKind::Fem, "{deep:?}");
     assert!(deep.meets_tolerance() && deep.depth_over_h == 0.25);
+    // Frictionless, the same press stays on the layered rung.
+    let slippery = pick(0.5, 0.0);
+    assert_eq!(slippery.solver, SolverKind::Layered, "{slippery:?}");
 }

@@ -174,7 +174,12 @@ impl Simulator {
             mechanics: Mechanics {
                 targets: scene.frames(),
                 rung: scene.solver,
-                limits: RungLimits::of(SolverTable::builtin(), scene.solver, scene.tolerance),
+                limits: RungLimits::of(
+                    SolverTable::builtin(),
+                    scene.solver,
+                    scene.tolerance,
+                    scene.gel.friction,
+                ),
                 solver,
                 previous_pose: None,
                 next: 0,
@@ -338,7 +343,14 @@ impl Mechanics {
         let Some(&top) = higher.last() else {
             return Ok(None);
         };
-        let limits_of = |k| RungLimits::of(SolverTable::builtin(), k, scene.tolerance);
+        let limits_of = |k| {
+            RungLimits::of(
+                SolverTable::builtin(),
+                k,
+                scene.tolerance,
+                scene.gel.friction,
+            )
+        };
         let rung = higher
             .into_iter()
             .find(|&k| limits_of(k).check(true, a_over_h, depth_over_h).is_ok())

@@ -7,6 +7,9 @@ use sparsh_scene::auto::SolverTable;
 use sparsh_scene::{RungLimits, Scene, SolverKind, Validity};
 use sparsh_sim::{SimError, Simulator};
 
+/// The gel's friction coefficient in [`deep_press`]: the depth limits depend on it.
+const FRICTION: f64 = 1.0;
+
 /// A 2 mm sphere pressed 0.09 mm deeper each frame into a 2 mm gel, frames 0…10.
 fn deep_press(solver: &str, policy: &str) -> Scene {
     let text = format!(
@@ -21,6 +24,7 @@ mm_per_px = 0.1
 fps = 10.0
 [gel]
 thickness_mm = 2.0
+friction = {FRICTION}
 [indenter]
 shape = "sphere"
 radius_mm = 2.0
@@ -39,7 +43,7 @@ position_mm = [0.0, 0.0, -0.9]
 /// rung's depth limit is flagged with that limit, and no other frame is.
 #[test]
 fn warn_records_the_depth_limit_frame_by_frame() {
-    let limits = RungLimits::of(SolverTable::builtin(), SolverKind::Layered, 0.02);
+    let limits = RungLimits::of(SolverTable::builtin(), SolverKind::Layered, 0.02, FRICTION);
     assert!(
         limits.max_depth_over_h > 0.1 && limits.max_depth_over_h < 0.45,
         "{limits:?}"
@@ -80,7 +84,7 @@ fn warn_records_the_depth_limit_frame_by_frame() {
 /// Under `error`, the first frame past the depth limit stops the run, naming the frame.
 #[test]
 fn error_stops_at_the_first_frame_past_the_limit() {
-    let limits = RungLimits::of(SolverTable::builtin(), SolverKind::Layered, 0.02);
+    let limits = RungLimits::of(SolverTable::builtin(), SolverKind::Layered, 0.02, FRICTION);
     let first = (0..=10)
         .find(|&k| (0.09 * k as f64 - 0.0005) / 2.0 > limits.max_depth_over_h)
         .unwrap();
