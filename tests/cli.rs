@@ -893,7 +893,7 @@ fn quick_study_writes_tables_and_charts() {
     assert!(out.status.success(), "{}", stderr(&out));
     let read = |name: &str| std::fs::read_to_string(dir.join(name)).unwrap();
     assert!(read("study.csv").starts_with("scene,rung,a_over_cell,"));
-    assert!(read("stability.csv").starts_with("sweep,value,rung,"));
+    assert!(read("stability.csv").starts_with("sweep,value,friction,rung,"));
     let written = read("solver_table.csv");
     assert_eq!(std::fs::read_to_string(&table).unwrap(), written);
     // every CSV starts with its header row; provenance is in a JSON sidecar
@@ -915,9 +915,10 @@ fn quick_study_writes_tables_and_charts() {
     for (stem, size, needle) in [
         ("error_vs_time", (1100, 760), "Pareto front"),
         ("error_vs_time_layers", (1100, 760), "Pareto front"),
-        ("stability_geometric", (1300, 560), "Stability map"),
-        ("stability_halfspace", (1300, 560), "Stability map"),
-        ("stability_layered", (1300, 560), "Stability map"),
+        ("stability_geometric", (1300, 860), "Stability map"),
+        ("stability_halfspace", (1300, 860), "Stability map"),
+        // the depth sweep a row per friction coefficient
+        ("stability_layered", (1300, 860), "depth/thickness, μ 1"),
     ] {
         let png = image::open(dir.join(format!("{stem}.png"))).unwrap();
         assert_eq!((png.width(), png.height()), size, "{stem}");

@@ -4,9 +4,15 @@
 mod common;
 use common::{assert_user_error, generate, stderr, write_scene};
 
-/// A 2 mm sphere pressed 0.1 mm deeper each frame into a 2 mm gel (frames 0…9) on the layered
-/// rung, whose depth limit at the 2 % default tolerance is δ/h = 0.3 (the study's depth sweep).
+/// A 2 mm sphere pressed 0.1 mm deeper each frame into a frictionless 2 mm gel (frames 0…9) on
+/// the layered rung, whose depth limit at the 2 % default tolerance is δ/h = 0.3 (the study's
+/// depth sweep).
 fn deep_press(policy: &str) -> String {
+    deep_press_with(policy, 0.0)
+}
+
+/// [`deep_press`] with friction coefficient `friction`.
+fn deep_press_with(policy: &str, friction: f64) -> String {
     format!(
         r#"
 solver = "layered"
@@ -19,6 +25,7 @@ mm_per_px = 0.12
 fps = 10.0
 [gel]
 thickness_mm = 2.0
+friction = {friction}
 [indenter]
 shape = "sphere"
 radius_mm = 2.0
@@ -41,6 +48,11 @@ fn error_policy_stops_on_one_line_naming_the_frame() {
     assert_user_error(&out, "frame 7: the layered rung is outside its validity");
     assert!(stderr(&out).contains("indentation depth over gel thickness 0.3"));
     assert!(!tmp.path().join("ds/manifest.json").exists());
+    // With friction the rung holds to δ/h = 0.1 only: frame 3 is the first past it.
+    let scene = write_scene(tmp.path(), &deep_press_with("error", 1.0));
+    let out = generate(&scene, &tmp.path().join("ds_friction"), &["--quiet"]);
+    assert_user_error(&out, "frame 3: the layered rung is outside its validity");
+    assert!(stderr(&out).contains("past the rung's 0.100"));
 }
 
 #[test]

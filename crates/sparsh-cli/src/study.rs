@@ -9,7 +9,7 @@ use anyhow::{Context, Result, anyhow, bail};
 use plotters::coord::Shift;
 use plotters::prelude::*;
 use plotters::style::FontStyle;
-use sparsh_contact::study::{Outcome, Study, StudyOptions, StudyPoint, run_study};
+use sparsh_contact::study::{Outcome, StabilityPoint, Study, StudyOptions, StudyPoint, run_study};
 use sparsh_scene::auto::SolverTable;
 use sparsh_scene::{RungLimits, SolverKind};
 
@@ -75,7 +75,7 @@ pub fn study(out: &Path, quick: bool, table: Option<&Path>) -> Result<()> {
     for rung in SolverKind::ALL {
         render(
             &out.join(format!("stability_{}", rung.name())),
-            (1300, 560),
+            (1300, 860),
             &StabilityMap {
                 study: &study,
                 rung,
@@ -337,8 +337,9 @@ fn outcome_color(o: Outcome) -> RGBColor {
     }
 }
 
-/// One rung's stability map: a row per swept parameter, a cell per value, coloured by outcome
-/// and labelled with the value and the force error.
+/// One rung's stability map: a row per swept parameter (the depth sweep a row per friction
+/// coefficient), a cell per value, coloured by outcome and labelled with the value and the force
+/// error.
 struct StabilityMap<'a> {
     study: &'a Study,
     rung: SolverKind,
@@ -353,15 +354,22 @@ impl Chart for StabilityMap<'_> {
             .iter()
             .filter(|p| p.rung == self.rung)
             .collect();
-        let mut sweeps: Vec<&str> = Vec::new();
+        let row_of = |p: &StabilityPoint| {
+            if p.sweep == "depth_over_thickness" {
+                format!("depth/thickness, μ {}", p.friction)
+            } else {
+                p.sweep.replace('_', " ")
+            }
+        };
+        let mut sweeps: Vec<String> = Vec::new();
         for p in &points {
-            if !sweeps.contains(&p.sweep) {
-                sweeps.push(p.sweep);
+            if !sweeps.contains(&row_of(p)) {
+                sweeps.push(row_of(p));
             }
         }
         let columns = sweeps
             .iter()
-            .map(|s| points.iter().filter(|p| p.sweep == *s).count())
+            .map(|s| points.iter().filter(|p| row_of(p) == *s).count())
             .max()
             .unwrap_or(1);
         let (w, h) = area.dim_in_pixel();
@@ -382,12 +390,12 @@ impl Chart for StabilityMap<'_> {
         for (row, sweep) in sweeps.iter().enumerate() {
             let y = top + row as i32 * cell_h;
             area.draw(&Text::new(
-                sweep.replace('_', " "),
+                sweep.clone(),
                 (12, y + cell_h / 2 - 8),
                 font(16),
             ))
             .map_err(chart_err)?;
-            for (col, p) in points.iter().filter(|p| p.sweep == *sweep).enumerate() {
+            for (col, p) in points.iter().filter(|p| row_of(p) == *sweep).enumerate() {
                 let x = left + col as i32 * cell_w;
                 let m = &p.measurement;
                 area.draw(&Rectangle::new(
@@ -401,7 +409,9 @@ impl Chart for StabilityMap<'_> {
                     }
                     (o, _) => o.name().replace('_', " "),
                 };
-                area.draw(&Text::new(p.label.clone(), (x + 8, y + 8), font(15)))
+                // The row names the friction; the cell, the depth.
+                let value = p.label.split(',').next().unwrap_or(&p.label);
+                area.draw(&Text::new(value.to_string(), (x + 8, y + 8), font(15)))
                     .map_err(chart_err)?;
                 area.draw(&Text::new(detail, (x + 8, y + cell_h / 2 + 2), font(15)))
                     .map_err(chart_err)?;

@@ -13,7 +13,8 @@
 //! per frame with and without warm start, against the layered rung on the same frames, and on
 //! stderr where the time went (factorisations, preconditioned CG iterations, multiplier updates,
 //! the share of assembly, factorisation, solves and line searches); `fem [frames] warm`: warm
-//! start only.
+//! start only; `fem [frames] [warm|both] [friction]`: the same press at another friction
+//! coefficient (μ = 0: the frictionless press the layered rung's coupling is measured against).
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Instant;
@@ -100,7 +101,14 @@ fn main() {
     }
     if args.get(1).map(String::as_str) == Some("fem") {
         let frames = args.get(2).map_or(20, |f| f.parse().expect("frames"));
-        deep_press(frames, args.get(3).map(String::as_str) == Some("warm"));
+        let friction = args
+            .get(4)
+            .map_or(DIGIT_GEL.friction, |f| f.parse().expect("friction"));
+        deep_press(
+            frames,
+            args.get(3).map(String::as_str) == Some("warm"),
+            friction,
+        );
         return;
     }
     let kind = match args.get(1).map(String::as_str) {
@@ -272,8 +280,12 @@ unsafe impl GlobalAlloc for CountingAllocator {
 static GLOBAL: CountingAllocator = CountingAllocator;
 
 /// The deep-press benchmark of the finite-element rung (see the module comment).
-fn deep_press(frames: usize, warm_only: bool) {
-    let (grid, gel) = (DIGIT_GRID, DIGIT_GEL);
+fn deep_press(frames: usize, warm_only: bool, friction: f64) {
+    let grid = DIGIT_GRID;
+    let gel = Gel {
+        friction,
+        ..DIGIT_GEL
+    };
     let indenter = Indenter::Sphere { radius_mm: 6.0 };
     let gaps: Vec<GapField> = (1..=frames)
         .map(|k| {
@@ -350,7 +362,7 @@ fn deep_press(frames: usize, warm_only: bool) {
         );
     }
     println!(
-        "deep press: R = 6 mm sphere, 1 mm into a 3 mm gel in {frames} frames, 320 × 240 grid, {} threads",
+        "deep press: R = 6 mm sphere, 1 mm into a 3 mm gel in {frames} frames, μ = {friction}, 320 × 240 grid, {} threads",
         rayon::current_num_threads()
     );
     println!(

@@ -131,10 +131,13 @@ fn auto_meets_its_tolerance_on_held_out_scenes_and_is_never_dearer() {
     }
 }
 
-/// The quickstart's press under its `solver = "auto"`: a 6 mm-radius sphere 0.85 mm into a 3 mm
-/// gel (δ/h = 0.28) gets the layered rung, whose studied depth limit is δ/h = 0.3 at 2 %; the
-/// same press 1 mm deep (δ/h = 0.33, where the boundary elements' studied depth error misses
-/// 2 %) gets the finite elements, and 0.1 mm deep a boundary-element rung.
+/// The quickstart's press under its `solver = "auto"`: a 6 mm-radius sphere 0.3 mm into a 3 mm
+/// gel (δ/h = 0.1) with μ = 1 gets the layered rung, whose studied depth limit with friction is
+/// δ/h = 0.1 at 2 %; the same press 0.85 mm deep (δ/h = 0.28) gets the finite elements with
+/// friction, where a stuck surface at finite strain stiffens the press beyond the boundary
+/// elements' linear coupling, and the layered rung again without friction (its frictionless
+/// limit being 0.3); 1 mm deep (δ/h = 0.33) the finite elements either way, and 0.1 mm deep a
+/// boundary-element rung.
 #[test]
 fn auto_takes_the_layer_for_the_quickstart_and_the_finite_elements_deeper() {
     let quickstart = std::fs::read_to_string(
@@ -142,6 +145,7 @@ fn auto_takes_the_layer_for_the_quickstart_and_the_finite_elements_deeper() {
     )
     .expect("quickstart scene");
     assert!(quickstart.contains("solver = \"auto\""));
+    assert!(quickstart.contains("friction = 1.0"));
     let scene = Scene::parse(Path::new("quickstart.toml"), quickstart.clone()).expect("scene");
     let choice = scene.auto.expect("auto records its choice");
     assert_eq!(
@@ -149,20 +153,35 @@ fn auto_takes_the_layer_for_the_quickstart_and_the_finite_elements_deeper() {
         sparsh_scene::SolverKind::Layered,
         "{choice:?}"
     );
+    assert!((choice.depth_over_h - 0.3 / 3.0).abs() < 0.02, "{choice:?}");
+    let pressed = |depth: &str, friction: &str| {
+        let text = quickstart
+            .replace("[-1.0, 0.0, -0.3]", &format!("[-1.0, 0.0, -{depth}]"))
+            .replace("[1.0, 0.0, -0.3]", &format!("[1.0, 0.0, -{depth}]"))
+            .replace("friction = 1.0", &format!("friction = {friction}"));
+        Scene::parse(Path::new("pressed.toml"), text).expect("scene")
+    };
+    let stuck = pressed("0.85", "1.0");
+    let choice = stuck.auto.expect("auto records its choice");
+    assert_eq!(stuck.solver, sparsh_scene::SolverKind::Fem, "{choice:?}");
     assert!(
         (choice.depth_over_h - 0.85 / 3.0).abs() < 0.02,
         "{choice:?}"
     );
-    let pressed = |depth: &str| {
-        quickstart
-            .replace("[-1.0, 0.0, -0.85]", &format!("[-1.0, 0.0, -{depth}]"))
-            .replace("[1.0, 0.0, -0.85]", &format!("[1.0, 0.0, -{depth}]"))
-    };
-    let deep = Scene::parse(Path::new("deep.toml"), pressed("1.0")).expect("scene");
-    let choice = deep.auto.expect("auto records its choice");
-    assert_eq!(deep.solver, sparsh_scene::SolverKind::Fem, "{choice:?}");
-    assert!((choice.depth_over_h - 1.0 / 3.0).abs() < 0.02, "{choice:?}");
-    let shallow = Scene::parse(Path::new("shallow.toml"), pressed("0.1")).expect("scene");
+    let slippery = pressed("0.85", "0.0");
+    assert_eq!(
+        slippery.solver,
+        sparsh_scene::SolverKind::Layered,
+        "{:?}",
+        slippery.auto
+    );
+    for friction in ["0.0", "1.0"] {
+        let deep = pressed("1.0", friction);
+        let choice = deep.auto.expect("auto records its choice");
+        assert_eq!(deep.solver, sparsh_scene::SolverKind::Fem, "{choice:?}");
+        assert!((choice.depth_over_h - 1.0 / 3.0).abs() < 0.02, "{choice:?}");
+    }
+    let shallow = pressed("0.1", "1.0");
     assert_ne!(
         shallow.solver,
         sparsh_scene::SolverKind::Fem,

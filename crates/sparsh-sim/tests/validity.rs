@@ -7,8 +7,9 @@ use sparsh_scene::auto::SolverTable;
 use sparsh_scene::{RungLimits, Scene, SolverKind, Validity};
 use sparsh_sim::{SimError, Simulator};
 
-/// The gel's friction coefficient in [`deep_press`]: the depth limits depend on it.
-const FRICTION: f64 = 1.0;
+/// The gel's friction coefficient in [`deep_press`]: the depth limits depend on it (frictionless,
+/// the layered rung holds to δ/h = 0.3; with μ ≥ 0.5 to 0.1).
+const FRICTION: f64 = 0.0;
 
 /// A 2 mm sphere pressed 0.09 mm deeper each frame into a 2 mm gel, frames 0…10.
 fn deep_press(solver: &str, policy: &str) -> Scene {
