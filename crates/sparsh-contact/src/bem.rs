@@ -1561,7 +1561,11 @@ impl Model {
             stats.tangential_s += tangential.tangential_s;
             stats.kernel_s += normal.kernel_s + tangential.kernel_s;
             stats.coupling_iterations = iteration;
-            let p_max = normal.pressure_kpa.iter().fold(0.0f64, |m, &p| m.max(p));
+            // (a contact carrying no pressure settles at once instead of dividing by zero)
+            let p_max = normal
+                .pressure_kpa
+                .iter()
+                .fold(f64::MIN_POSITIVE, |m, &p| m.max(p));
             if let Some((n0, t0)) = &last {
                 let dp = max_difference(&n0.pressure_kpa, &normal.pressure_kpa);
                 let dq = (0..2)
