@@ -1032,3 +1032,29 @@ fn shipped_defaults_work_from_any_directory() {
     let err = stderr(&out);
     assert_eq!(err.matches("No such file").count(), 1, "{err}");
 }
+
+/// A table read by something that stops early (`sparsh limits | head -1`) ends the command
+/// quietly, as `SIGPIPE` ends other Unix tools, not with a panic on the closed pipe.
+#[test]
+fn a_closed_pipe_ends_a_table_without_a_panic() {
+    let mut child = Command::new(env!("CARGO_BIN_EXE_sparsh"))
+        .arg("limits")
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("sparsh runs");
+    // The reader goes before the command has printed (it has not yet loaded).
+    drop(child.stdout.take());
+    let out = child.wait_with_output().expect("sparsh ends");
+    let err = stderr(&out);
+    assert!(!err.contains("panicked"), "{err}");
+    #[cfg(unix)]
+    {
+        use std::os::unix::process::ExitStatusExt;
+        assert!(
+            out.status.success() || out.status.signal() == Some(libc::SIGPIPE),
+            "{:?}: {err}",
+            out.status
+        );
+    }
+}

@@ -515,6 +515,7 @@ enum FieldprobeAction {
 }
 
 fn main() -> ExitCode {
+    end_quietly_on_a_closed_pipe();
     quiet_device_select_without_a_session();
     let cli = Cli::parse();
     match run(cli) {
@@ -523,6 +524,18 @@ fn main() -> ExitCode {
             eprintln!("error: {}", one_line(&err));
             ExitCode::FAILURE
         }
+    }
+}
+
+/// A table piped into `head` (or any reader that stops early) ends the command as it ends other
+/// Unix tools: by `SIGPIPE`, silently. Rust ignores the signal by default, so the next write to
+/// the closed pipe would be an error, and `println!` panics on it.
+fn end_quietly_on_a_closed_pipe() {
+    #[cfg(unix)]
+    // SAFETY: the first thing `main` does, before any other thread exists; restores the
+    // signal's default disposition.
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
     }
 }
 
