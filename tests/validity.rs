@@ -233,7 +233,7 @@ const OUTSIDE_VALIDITY: [(&str, &str); 4] = [
 /// gives frames inside its rung's validity: a spot check of about five sequences of each (one
 /// shard), which `generate` would warn about; the half-space ablation, which does warn, shows
 /// the check sees a warning when there is one. The quick start has its own test above, and the
-/// finite-element deep press (20 frames of a few seconds each) is left out for time.
+/// finite-element deep press (19 frames of about 5 s each) is left out for time.
 #[test]
 fn shipped_scenes_are_inside_their_rungs_validity() {
     let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../");
