@@ -79,7 +79,11 @@ fn shipped_scenes_load() {
     // Texture: twelve classes, each the family name of one DIGIT and one GelSight Mini table,
     // with held-out variants of each class in the test split.
     let spec = sparsh_scene::DatasetSpec::load(&dir.join("tacbench_texture.toml")).unwrap();
-    assert!(spec.frame_count() <= 12_000, "{} frames", spec.frame_count());
+    assert!(
+        spec.frame_count() <= 12_000,
+        "{} frames",
+        spec.frame_count()
+    );
     let mut classes: std::collections::BTreeMap<String, (Vec<String>, usize)> = Default::default();
     for k in 0..spec.sequence_count() {
         let seq = spec.sequence(k).unwrap();
