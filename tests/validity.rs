@@ -216,7 +216,7 @@ fn the_quickstart_is_inside_its_rungs_validity() {
 const OUTSIDE_VALIDITY: [(&str, &str); 4] = [
     (
         "sim2real_gelsight",
-        "the real frames' ball presses reach δ/h ≈ 0.3–1 with friction: no rung holds there",
+        "the real packs' ball presses reach δ/h 0.15–1 with friction: no rung holds there",
     ),
     ("sim2real_mini", "as sim2real_gelsight"),
     (
