@@ -530,6 +530,8 @@ fn bench_train_times_steps_and_compares_devices() {
             "1",
             "--config",
             recipe,
+            "--gemm",
+            "64",
             "--parity",
             "--device",
             device,
@@ -543,21 +545,35 @@ fn bench_train_times_steps_and_compares_devices() {
     };
     let report = run("cpu");
     let rows = report["rows"].as_array().unwrap();
-    assert_eq!(rows.len(), 2, "{report}");
+    assert_eq!(rows.len(), 3, "{report}");
     for row in rows {
         assert!(row["seconds_per_step"].as_f64().unwrap() > 0.0, "{row}");
-        assert_eq!(row["batch"], 2, "{row}");
     }
+    let row = |prefix: &str| {
+        rows.iter()
+            .find(|r| r["what"].as_str().unwrap().starts_with(prefix))
+            .unwrap_or_else(|| panic!("no row '{prefix}…': {report}"))
+    };
     // tiny: 192 wide, 6 blocks; 32×24 at patch 8 is 4 × 3 = 12 tokens of 6·8·8 values
     let expected = enumerated_step_flops(12.0, 384.0, 192.0, 6.0, 2.0) / 1e9;
-    let gflop = rows[0]["gflop_per_step"].as_f64().unwrap();
+    let reference = row("reference");
+    assert_eq!(reference["batch"], 2, "{reference}");
+    let gflop = reference["gflop_per_step"].as_f64().unwrap();
     assert!(
         (gflop - expected).abs() <= 1e-9 * expected,
         "{gflop} vs {expected}"
     );
+    let recipe_row = row(recipe);
+    assert_eq!(recipe_row["batch"], 2, "{recipe_row}");
     assert!(
-        rows[1]["gflop_per_step"].is_null(),
+        recipe_row["gflop_per_step"].is_null(),
         "a recipe's FLOPs are not counted"
+    );
+    // a 64³ product is 2 · 64³ multiply-adds counted as two FLOPs each
+    let product = row("f32 matrix product 64×64×64");
+    assert_eq!(
+        product["gflop_per_step"].as_f64(),
+        Some(2.0 * 64f64.powi(3) / 1e9)
     );
     let parity = &report["parity"][0];
     assert_eq!(parity["batch"], 4, "two images per micro-batch: {parity}");
