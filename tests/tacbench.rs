@@ -462,8 +462,14 @@ fn bad_tacbench_configs_fail_on_one_line() {
         ),
         "task[1].kind",
     );
-    let reserved = config(&[("force", "data")], "[1.0]").replacen("\"weights\"", "\"pixels\"", 1);
-    assert_user_error(&run("reserved", &reserved), "encoder[0].name");
+    for name in ["pixels", "ridge-light"] {
+        let reserved = config(&[("force", "data")], "[1.0]").replacen(
+            "\"weights\"",
+            &format!("\"{name}\""),
+            1,
+        );
+        assert_user_error(&run("reserved", &reserved), "encoder[0].name");
+    }
     let path = config(&[("force", "data")], "[1.0]").replacen("\"weights\"", "\"../up\"", 1);
     assert_user_error(&run("path", &path), "encoder[0].name");
     let zero = config(&[("force", "data")], "[1.0]").replacen(
@@ -513,6 +519,23 @@ fn bad_tacbench_configs_fail_on_one_line() {
         &run("no_uz", &config(&[("force", "no_uz")], "[1.0]")),
         "\"uz\"",
     );
+    // light-normalized frames from a dataset that keeps no backgrounds (the official layout)
+    let official = tmp.path().join("official");
+    let out = sparsh(&[
+        "export",
+        tmp.path().join("data").to_str().unwrap(),
+        "--format",
+        "sparsh-pkl",
+        "--out",
+        official.to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let light = config(&[("force", "official")], "[1.0]").replacen(
+        "oracle = true\n",
+        "light_normalize = true\n",
+        1,
+    );
+    assert_user_error(&run("light", &light), "light_normalize");
     // unknown keys and missing data
     assert_user_error(
         &run(

@@ -101,6 +101,13 @@ pub struct BaselineConfig {
     /// off).
     #[serde(default)]
     pub photometric: bool,
+    /// Divide the frames the ridge and the ceiling read by their sequence's light level (each
+    /// channel by the mean of its sequence's background over the mean of every background, as
+    /// the photometric read-out does), so that the per-sequence LED intensity the scenes draw
+    /// does not scale what they read; their rows are then named `ridge-light` and
+    /// `supervised-cnn-light` (default off: the official I − bg input).
+    #[serde(default)]
+    pub light_normalize: bool,
     /// `[height, width]` the ridge and the ceiling read the frames at (default 160×120).
     #[serde(default = "pixel_size")]
     pub pixel_size: [usize; 2],
@@ -350,7 +357,9 @@ impl BenchConfig {
             "end-to-end",
             "constant",
             "ridge",
+            "ridge-light",
             "supervised-cnn",
+            "supervised-cnn-light",
             "floor-cnn",
             "floor-ridge",
             "photometric-ridge",

@@ -58,16 +58,21 @@ pub struct PixelInputs {
     /// intensity per sequence, and I − bg scales with it); empty where the dataset keeps no
     /// backgrounds (official layouts) or for the indentation.
     gains: Vec<[f64; 3]>,
+    /// Whether [`PixelInputs::input`] divides the frames by their light level (`gains`).
+    light_normalized: bool,
 }
 
 impl PixelInputs {
     /// Reads the frames of `samples` from the dataset in `dir` at `size`. `origin` maps the
     /// samples' sequence indices to the dataset's (identity unless a run keeps a subset).
+    /// With `light_normalized`, [`PixelInputs::input`] divides each frame by its sequence's
+    /// light level; a dataset without backgrounds (the official layouts) is refused then.
     pub fn load(
         dir: &Path,
         samples: &[Sample],
         origin: &[usize],
         size: [usize; 2],
+        light_normalized: bool,
     ) -> Result<Self, Error> {
         let dataset = if dir.join("labels.jsonl").is_file() {
             Dataset::load_generated(dir, size)?
@@ -91,11 +96,20 @@ impl PixelInputs {
                     .collect())
             })
             .collect::<Result<Vec<Vec<u8>>, Error>>()?;
+        let gains = light_levels(dir, &order)?;
+        if light_normalized && gains.is_empty() {
+            return Err(Error::file(
+                dir,
+                "light_normalize needs each sequence's background (a generated dataset); \
+                 this layout keeps none",
+            ));
+        }
         Ok(Self {
             size,
             frames: Frames::Levels(frames),
             pairs: pairs_of(samples, origin, &wanted),
-            gains: light_levels(dir, &order)?,
+            gains,
+            light_normalized,
         })
     }
 
@@ -149,6 +163,7 @@ impl PixelInputs {
             frames: Frames::Indentation(grids.into_iter().map(|g| g.1).collect()),
             pairs: pairs_of(samples, origin, &wanted),
             gains: Vec::new(),
+            light_normalized: false,
         })
     }
 
@@ -171,18 +186,32 @@ impl PixelInputs {
         self.pairs.is_empty()
     }
 
-    /// Sample `i`'s input, `[channels, h, w]`: (I_t − bg)/255 and (I_t − I_{t−5})/255, or
-    /// −u_z(t) and −u_z(t) + u_z(t − 5) in units of 0.1 mm (about the frames' scale).
+    /// Sample `i`'s input, `[channels, h, w]`: (I_t − bg)/255 and (I_t − I_{t−5})/255, each
+    /// colour channel divided by the sequence's light level where the inputs are
+    /// light-normalized, or −u_z(t) and −u_z(t) + u_z(t − 5) in units of 0.1 mm (about the
+    /// frames' scale).
     pub fn input(&self, i: usize, out: &mut Vec<f32>) {
         let (now, before) = self.pairs[i];
         match &self.frames {
             Frames::Levels(f) => {
                 let (a, b) = (&f[now], &f[before]);
-                out.extend(a.iter().map(|&v| (v as f32 - 127.5) / 255.0));
+                let plane = self.size[0] * self.size[1];
+                let scale: [f32; 3] = match self.gains.get(now) {
+                    Some(g) if self.light_normalized => {
+                        std::array::from_fn(|c| (1.0 / (255.0 * g[c])) as f32)
+                    }
+                    _ => [1.0 / 255.0; 3],
+                };
+                out.extend(
+                    a.iter()
+                        .enumerate()
+                        .map(|(k, &v)| (v as f32 - 127.5) * scale[k / plane]),
+                );
                 out.extend(
                     a.iter()
                         .zip(b)
-                        .map(|(&x, &y)| (x as f32 - y as f32) / 255.0),
+                        .enumerate()
+                        .map(|(k, (&x, &y))| (x as f32 - y as f32) * scale[k / plane]),
                 );
             }
             Frames::Indentation(f) => {
@@ -315,6 +344,7 @@ impl PixelInputs {
             frames: Frames::Indentation(estimated),
             pairs: self.pairs.clone(),
             gains: Vec::new(),
+            light_normalized: false,
         })
     }
 }
@@ -674,6 +704,7 @@ mod tests {
             frames: Frames::Indentation(grids),
             pairs: (0..n).map(|i| (i, i)).collect(),
             gains: Vec::new(),
+            light_normalized: false,
         };
         (inputs, samples)
     }
@@ -768,6 +799,7 @@ mod tests {
             frames: Frames::Levels(levels),
             pairs: truth.pairs.clone(),
             gains: Vec::new(),
+            light_normalized: false,
         };
         let split = split(samples.len());
         let Ok(estimated) = frames.photometric(&truth, &split.train) else {
@@ -869,9 +901,57 @@ mod tests {
             frames: Frames::Indentation(vec![vec![1.0, -3.0, 0.0, 4.0, 2.0, 2.0, 0.0, 0.0]]),
             pairs: vec![(0, 0)],
             gains: Vec::new(),
+            light_normalized: false,
         };
         let f = inputs.block_features(0, 2);
         // channel 0 (the map in 0.1 mm), channel 1 (its change: 0), |channel 0|, |channel 1|
         assert_eq!(f, vec![5.0, 10.0, 0.0, 0.0, 20.0, 10.0, 0.0, 0.0]);
+    }
+
+    #[test]
+    fn light_normalized_inputs_undo_a_sequences_led_gain() {
+        // one shading (I − bg in levels, per channel) seen under two sequences' lights: the
+        // second's LEDs at 1.25 / 0.8 / 1 of the first's, so its change in every channel scales
+        // by that gain; the earlier frame of each pair is the background (change 0)
+        let change: [f32; 3] = [40.0, -24.0, 16.0];
+        let frame = |gain: [f32; 3]| -> Vec<u8> {
+            (0..3)
+                .flat_map(|c| std::iter::repeat_n((127.5 + change[c] * gain[c]).round() as u8, 2))
+                .collect()
+        };
+        let background = vec![128u8; 6];
+        let inputs = |light_normalized| PixelInputs {
+            size: [1, 2],
+            frames: Frames::Levels(vec![
+                frame([1.0; 3]),
+                background.clone(),
+                frame([1.25, 0.8, 1.0]),
+                background.clone(),
+            ]),
+            pairs: vec![(0, 1), (2, 3)],
+            gains: vec![[1.0; 3], [1.0; 3], [1.25, 0.8, 1.0], [1.25, 0.8, 1.0]],
+            light_normalized,
+        };
+        let read = |p: &PixelInputs, i| {
+            let mut x = Vec::new();
+            p.input(i, &mut x);
+            x
+        };
+        let plain = inputs(false);
+        let (a, b) = (read(&plain, 0), read(&plain, 1));
+        assert!((b[0] / a[0] - 1.25).abs() < 0.02, "{a:?} {b:?}");
+        let normalized = inputs(true);
+        let (a, b) = (read(&normalized, 0), read(&normalized, 1));
+        for (k, (x, y)) in a.iter().zip(&b).enumerate() {
+            // each frame rounded to whole levels: half a level, and half a level over the gain
+            assert!(
+                (x - y).abs() <= (0.5 + 0.5 / 0.8) / 255.0 + 1e-6,
+                "value {k}: {x} vs {y}"
+            );
+        }
+        assert!(
+            (a[0] - change[0] / 255.0).abs() < 0.5 / 255.0 + 1e-6,
+            "{a:?}"
+        );
     }
 }

@@ -344,9 +344,14 @@ pub fn encoders(
                 vit: None,
             });
         }
+        let (ridge, ceiling) = if b.light_normalize {
+            ("ridge-light", "supervised-cnn-light")
+        } else {
+            ("ridge", "supervised-cnn")
+        };
         for (on, name, kind) in [
-            (b.ridge, "ridge", EncoderKind::Ridge),
-            (b.ceiling, "supervised-cnn", EncoderKind::Ceiling),
+            (b.ridge, ridge, EncoderKind::Ridge),
+            (b.ceiling, ceiling, EncoderKind::Ceiling),
             (b.oracle, "floor-cnn", EncoderKind::Oracle),
             (b.oracle, "floor-ridge", EncoderKind::OracleRidge),
             (b.photometric, "photometric-ridge", EncoderKind::Photometric),
@@ -519,6 +524,17 @@ pub fn run(
                 ));
             }
         }
+        if let Some(b) = cfg.baselines.as_ref()
+            && b.light_normalize
+            && (b.ridge || b.ceiling)
+            && !task.data.join("labels.jsonl").is_file()
+        {
+            return Err(Error::file(
+                &task.data,
+                "baselines.light_normalize needs each sequence's background (a generated \
+                 dataset); this layout keeps none",
+            ));
+        }
         let mut pixels: Option<PixelInputs> = None;
         let mut indentation: Option<PixelInputs> = None;
         for enc in &encoders {
@@ -555,12 +571,13 @@ pub fn run(
                 EncoderKind::Ridge | EncoderKind::Ceiling | EncoderKind::Photometric
             );
             if framed && pixels.is_none() {
-                let size = b.expect("pixel read-outs come from [baselines]").pixel_size;
+                let b = b.expect("pixel read-outs come from [baselines]");
                 pixels = Some(PixelInputs::load(
                     &task.data,
                     &tr.samples.samples,
                     &origin,
-                    size,
+                    b.pixel_size,
+                    b.light_normalize,
                 )?);
             }
             let oracle = matches!(
