@@ -189,8 +189,16 @@ pub fn fit_end_to_end(
     };
     // the images stay 5-D: pass them flattened through the 3-D input and reshape inside
     let shape = images(&split.train[..1]).shape;
+    let [_, frames, channels, h, w] = shape;
+    let rows = statistics_rows(&split.train);
+    let standardizer = Standardizer::fit(
+        frames * channels,
+        h * w,
+        rows.chunks(32).map(|chunk| images(chunk).values),
+    );
     let input = |rows: &[usize], device: &Device| {
-        let b = images(rows);
+        let mut b = images(rows);
+        standardizer.apply(&mut b.values);
         Tensor::<1>::from_floats(b.values.as_slice(), device).reshape([
             rows.len(),
             1,
@@ -206,6 +214,81 @@ pub fn fit_end_to_end(
     fit(
         model, &input, &forward, samples, head, classes, split, opts, device,
     )
+}
+
+/// Each input channel standardized by its mean and standard deviation over training inputs:
+/// what the end-to-end model and the ceiling CNN read. Background-subtracted frames sit at a
+/// constant with a contact's change a few hundredths of it (a tenth of the gel pressed), which
+/// a fresh network passes on buried under its biases and, in a ViT, the position embedding,
+/// where the frozen probes read tokens standardized on their pool.
+pub(super) struct Standardizer {
+    /// Values per channel plane.
+    plane: usize,
+    /// Per channel: its mean.
+    mean: Vec<f32>,
+    /// Per channel: one over its standard deviation (1e6 at most).
+    scale: Vec<f32>,
+}
+
+impl Standardizer {
+    /// Statistics of `inputs`, each the values of whole samples laid out `[channels, plane]`
+    /// (any number of samples one after another).
+    pub(super) fn fit(
+        channels: usize,
+        plane: usize,
+        inputs: impl Iterator<Item = Vec<f32>>,
+    ) -> Self {
+        let (mut sum, mut squares, mut count) = (
+            vec![0.0f64; channels],
+            vec![0.0f64; channels],
+            vec![0.0f64; channels],
+        );
+        for values in inputs {
+            for (k, &v) in values.iter().enumerate() {
+                let c = (k / plane) % channels;
+                sum[c] += v as f64;
+                squares[c] += (v as f64) * (v as f64);
+                count[c] += 1.0;
+            }
+        }
+        let mean: Vec<f64> = sum
+            .iter()
+            .zip(&count)
+            .map(|(s, n)| s / n.max(1.0))
+            .collect();
+        let scale = squares
+            .iter()
+            .zip(&count)
+            .zip(&mean)
+            .map(|((q, n), m)| {
+                let variance = (q / n.max(1.0) - m * m).max(0.0);
+                (1.0 / variance.sqrt().max(1e-6)) as f32
+            })
+            .collect();
+        Standardizer {
+            plane,
+            mean: mean.iter().map(|&m| m as f32).collect(),
+            scale,
+        }
+    }
+
+    /// Standardizes `values` (whole samples, laid out as in [`Standardizer::fit`]) in place.
+    pub(super) fn apply(&self, values: &mut [f32]) {
+        let channels = self.mean.len();
+        for (k, v) in values.iter_mut().enumerate() {
+            let c = (k / self.plane) % channels;
+            *v = (*v - self.mean[c]) * self.scale[c];
+        }
+    }
+}
+
+/// At most this many training rows, evenly spaced, give a [`Standardizer`]'s statistics.
+pub(super) const STANDARDIZE_ROWS: usize = 256;
+
+/// Training rows for the statistics: at most [`STANDARDIZE_ROWS`], evenly spaced.
+pub(super) fn statistics_rows(train: &[usize]) -> Vec<usize> {
+    let step = train.len().div_ceil(STANDARDIZE_ROWS).max(1);
+    train.iter().copied().step_by(step).collect()
 }
 
 /// A fresh attentive probe for `head` on `d`-wide tokens, drawn from `seed`, its output bias
@@ -442,5 +525,42 @@ mod tests {
         // feature 0 over rows 0, 1: mean 2, sd 1; feature 1 constant (sd floored): centred only
         assert_eq!(&t.values[..4], &[-1.0, 0.0, 1.0, 0.0]);
         assert_eq!(t.values[4], 98.0);
+    }
+
+    #[test]
+    fn a_standardizer_gives_each_channel_zero_mean_and_unit_spread() {
+        // two samples of two channels on planes of 3 values: channel 0 holds 1, 2, …, 6 over
+        // the samples (mean 3.5, deviation √(35/12)), channel 1 is 10 everywhere but one 16
+        let samples = vec![
+            vec![1.0, 2.0, 3.0, 10.0, 10.0, 16.0],
+            vec![4.0, 5.0, 6.0, 10.0, 10.0, 10.0],
+        ];
+        let s = Standardizer::fit(2, 3, samples.clone().into_iter());
+        let mut both: Vec<f32> = samples.concat();
+        s.apply(&mut both);
+        let sd0 = (35.0f32 / 12.0).sqrt();
+        assert!((both[0] - (1.0 - 3.5) / sd0).abs() < 1e-5, "{both:?}");
+        assert!((both[7] - (5.0 - 3.5) / sd0).abs() < 1e-5, "{both:?}");
+        // channel 1: mean 11, deviation √5 (one 16 among six values)
+        assert!((both[5] - 5.0 / 5f32.sqrt()).abs() < 1e-5, "{both:?}");
+        assert!((both[3] + 1.0 / 5f32.sqrt()).abs() < 1e-5, "{both:?}");
+        for c in 0..2 {
+            let v: Vec<f32> = both
+                .chunks(3)
+                .enumerate()
+                .filter(|(k, _)| k % 2 == c)
+                .flat_map(|(_, p)| p.to_vec())
+                .collect();
+            let mean = v.iter().sum::<f32>() / 6.0;
+            let var = v.iter().map(|x| (x - mean).powi(2)).sum::<f32>() / 6.0;
+            assert!(
+                mean.abs() < 1e-5 && (var - 1.0).abs() < 1e-4,
+                "{c}: {mean} {var}"
+            );
+        }
+        // a constant channel is centred, not blown up to infinity
+        let mut flat = vec![2.0f32; 3];
+        Standardizer::fit(1, 3, std::iter::once(flat.clone())).apply(&mut flat);
+        assert_eq!(flat, vec![0.0; 3]);
     }
 }
