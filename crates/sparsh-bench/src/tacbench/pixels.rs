@@ -196,22 +196,23 @@ impl PixelInputs {
             Frames::Levels(f) => {
                 let (a, b) = (&f[now], &f[before]);
                 let plane = self.size[0] * self.size[1];
-                let scale: [f32; 3] = match self.gains.get(now) {
+                // a division, as before light normalization, so that plain inputs keep their bits
+                let divisor: [f32; 3] = match self.gains.get(now) {
                     Some(g) if self.light_normalized => {
-                        std::array::from_fn(|c| (1.0 / (255.0 * g[c])) as f32)
+                        std::array::from_fn(|c| (255.0 * g[c]) as f32)
                     }
-                    _ => [1.0 / 255.0; 3],
+                    _ => [255.0; 3],
                 };
                 out.extend(
                     a.iter()
                         .enumerate()
-                        .map(|(k, &v)| (v as f32 - 127.5) * scale[k / plane]),
+                        .map(|(k, &v)| (v as f32 - 127.5) / divisor[k / plane]),
                 );
                 out.extend(
                     a.iter()
                         .zip(b)
                         .enumerate()
-                        .map(|(k, (&x, &y))| (x as f32 - y as f32) * scale[k / plane]),
+                        .map(|(k, (&x, &y))| (x as f32 - y as f32) / divisor[k / plane]),
                 );
             }
             Frames::Indentation(f) => {
