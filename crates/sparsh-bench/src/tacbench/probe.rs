@@ -283,7 +283,7 @@ impl Standardizer {
 }
 
 /// At most this many training rows, evenly spaced, give a [`Standardizer`]'s statistics.
-pub(super) const STANDARDIZE_ROWS: usize = 256;
+const STANDARDIZE_ROWS: usize = 256;
 
 /// Training rows for the statistics: at most [`STANDARDIZE_ROWS`], evenly spaced.
 pub(super) fn statistics_rows(train: &[usize]) -> Vec<usize> {
