@@ -12,8 +12,9 @@
 //! `frames` equal steps (default 20), fields on the 320 × 240 grid: seconds and Newton iterations
 //! per frame with and without warm start, against the layered rung on the same frames, and on
 //! stderr where the time went (factorisations, preconditioned CG iterations, multiplier updates,
-//! the share of assembly, factorisation, solves and line searches); `fem [frames] warm`: warm
-//! start only; `fem [frames] [warm|both] [friction]`: the same press at another friction
+//! the share of assembly, factorisation, solves and line searches), and warm with the consistent
+//! slip tangent alone (no secant step after a shortened one) as the baseline; `fem [frames] warm`:
+//! warm start only; `fem [frames] [warm|both] [friction]`: the same press at another friction
 //! coefficient (μ = 0: the frictionless press the layered rung's coupling is measured against).
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -314,20 +315,28 @@ fn deep_press(frames: usize, warm_only: bool, friction: f64) {
         0.0,
         force,
     ));
-    for warm in [true, false] {
-        if warm_only && !warm {
+    let variants = [
+        ("fem, warm start", FemOptions::default()),
+        (
+            "fem, warm start, consistent slip tangent only",
+            FemOptions {
+                slip_secant: false,
+                ..FemOptions::default()
+            },
+        ),
+        (
+            "fem, from rest each frame",
+            FemOptions {
+                warm_start: false,
+                ..FemOptions::default()
+            },
+        ),
+    ];
+    for (label, options) in variants {
+        if warm_only && !options.warm_start {
             continue;
         }
-        let options = FemOptions {
-            warm_start: warm,
-            ..FemOptions::default()
-        };
         let mut fem = Fem::new(gel, grid).with_options(options);
-        let label = if warm {
-            "fem, warm start"
-        } else {
-            "fem, from rest each frame"
-        };
         let (mut work, mut largest) = (FemStats::default(), [0usize; 2]);
         let (mean, worst, its, force) = time_frames(&gaps, |gap| {
             let fields = fem.solve(&pressed(gap, &still)).expect("fem solve");

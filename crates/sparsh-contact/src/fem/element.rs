@@ -241,7 +241,8 @@ pub fn evaluate(
                     }
                 }
             }
-            for bb in 0..8 {
+            // The lower blocks only (b ≤ a); the tangent's major symmetry gives the rest.
+            for bb in 0..=a {
                 for i in 0..3 {
                     for k in 0..3 {
                         let s: f64 = (0..3).map(|l| t[i][k][l] * grad[bb][l]).sum();
@@ -258,8 +259,15 @@ pub fn evaluate(
         // The mean dilatation's rank-one term U''(θ)/V_e ∂v_e/∂u ⊗ ∂v_e/∂u.
         let s = ddu / b.volume_mm3;
         for r in 0..24 {
-            for c in 0..24 {
+            for c in 0..r / 3 * 3 + 3 {
                 hessian[r * 24 + c] += s * dv[r] * dv[c];
+            }
+        }
+        // Mirror the lower blocks: the Hessian is symmetric (A_iJkL = A_kLiJ). Within a diagonal
+        // block both triangles were computed.
+        for r in 0..24 {
+            for c in r / 3 * 3 + 3..24 {
+                hessian[r * 24 + c] = hessian[c * 24 + r];
             }
         }
     }

@@ -16,7 +16,9 @@
 //!   1993).
 //! - **Solution**: for fixed multipliers the problem is the minimum of a potential (strain
 //!   energy + contact + friction), solved by Newton with an Armijo backtracking line search on
-//!   that potential (inverted elements count as infinite energy, so a step never inverts one);
+//!   that potential (inverted elements count as infinite energy, so a step never inverts one),
+//!   a step the line search shortened followed by one with slipping nodes' secant friction
+//!   stiffness (a majorizer of the friction potential, so it cannot overshoot the stick disc);
 //!   the Hessian is factorised by faer's sparse supernodal Cholesky in a nested-dissection order
 //!   of the mesh, its symbolic analysis reused across iterations and frames, single-threaded so
 //!   the answer does not depend on the thread count. The last factor preconditions conjugate
@@ -71,6 +73,10 @@ pub struct FemOptions {
     pub pressure_tolerance: f64,
     /// Start each frame's Newton iteration from the previous frame's solution (else from rest).
     pub warm_start: bool,
+    /// After a Newton step that the line search had to shorten, give slipping nodes their
+    /// secant friction stiffness for the next step (see [`contact_terms`]); `false`: always the
+    /// consistent tangent.
+    pub slip_secant: bool,
 }
 
 impl Default for FemOptions {
@@ -83,6 +89,7 @@ impl Default for FemOptions {
             max_updates: 40,
             pressure_tolerance: 1e-3,
             warm_start: true,
+            slip_secant: true,
         }
     }
 }
@@ -371,20 +378,21 @@ impl Fem {
         state
     }
 
-    /// Assembles the potential at `u` (fixed multipliers and friction bounds).
+    /// Assembles the potential at `u` (fixed multipliers and friction bounds); `hessian`: with
+    /// its Hessian, `Some(true)` with slipping nodes' secant stiffness ([`contact_terms`]).
     fn assemble(
         &self,
         st: &State,
         u: &[f64],
         ind: &Indenter,
-        hessian: bool,
+        hessian: Option<bool>,
     ) -> Result<Assembled, Failure> {
         let mesh = &st.mesh;
         let sys = &st.system;
         let [nx, ny, _] = mesh.counts();
         let nfree = mesh.free_dofs();
         let mut gradient = vec![0.0; nfree];
-        let mut values = if hessian {
+        let mut values = if hessian.is_some() {
             vec![0.0; sys.row_idx.len()]
         } else {
             Vec::new()
@@ -404,7 +412,7 @@ impl Fem {
                     for (a, &n) in nodes.iter().enumerate() {
                         ue[a].copy_from_slice(&u[3 * n..3 * n + 3]);
                     }
-                    let s = evaluate(&self.material, &b, &ue, hessian)
+                    let s = evaluate(&self.material, &b, &ue, hessian.is_some())
                         .map_err(|_| Failure::Inverted)?;
                     Ok((e, s, nodes))
                 })
@@ -419,7 +427,7 @@ impl Fem {
                         }
                     }
                 }
-                if hessian {
+                if hessian.is_some() {
                     let map = &sys.scatter[e];
                     for (pos, &slot) in map.iter().enumerate() {
                         if slot != u32::MAX {
@@ -443,13 +451,14 @@ impl Fem {
                 &u[3 * n..3 * n + 3],
                 [mesh.x[i], mesh.y[j]],
                 ind,
+                hessian == Some(true),
             );
             energy += c.energy;
             peak_contact_force = peak_contact_force.max(area * c.pressure);
             for d in 0..3 {
                 gradient[3 * n + d] += c.gradient[d];
             }
-            if hessian {
+            if hessian.is_some() {
                 for col in 0..3 {
                     let base = sys.col_ptr[3 * n + col];
                     // Column 3n + col holds rows 3n + col, 3n + col + 1, … first (ascending).
@@ -494,21 +503,26 @@ impl Fem {
             let (i, j) = (n % nx, n / nx);
             let area = mesh.surface_area_mm2(i, j);
             let xy = [mesh.x[i], mesh.y[j]];
-            energy += contact_terms(st, n, area, eps, &u[3 * n..3 * n + 3], xy, ind).energy;
+            energy += contact_terms(st, n, area, eps, &u[3 * n..3 * n + 3], xy, ind, false).energy;
         }
         Ok(energy)
     }
 
-    /// Minimises the potential for fixed multipliers: Newton with a backtracking line search.
+    /// Minimises the potential for fixed multipliers: Newton with a backtracking line search. A
+    /// step the line search shortened is followed by one with slipping nodes' secant stiffness
+    /// (when [`FemOptions::slip_secant`]): it cannot carry their friction through the stick
+    /// disc, where the consistent tangent, flat along the slip, overshoots; a full step returns
+    /// to the consistent tangent and its quadratic convergence.
     fn newton(&mut self, st: &mut State, ind: &Indenter) -> Result<(), Failure> {
         let nfree = st.mesh.free_dofs();
         let length = ind_scale(st);
         // Nodal forces below 1e-5 of the largest contact force (and below 1e-8 of E times a
         // fine element's face, round-off of the volumetric terms) are noise (mN).
         let floor = 1e-8 * self.gel.youngs_modulus_kpa * st.mesh.fine_mm.powi(2);
+        let mut secant = false;
         for it in 0..self.options.max_newton {
             let clock = Instant::now();
-            let a = self.assemble(st, &st.u, ind, true)?;
+            let a = self.assemble(st, &st.u, ind, Some(secant))?;
             self.stats.assemble_s += clock.elapsed().as_secs_f64();
             let residual = a.gradient.iter().fold(0.0f64, |m, g| m.max(g.abs()));
             if residual <= (1e-5 * a.peak_contact_force).max(floor) {
@@ -543,7 +557,7 @@ impl Fem {
                 // step when it shrinks the residual instead.
                 if alpha == 1.0
                     && -slope <= 1e-10 * a.energy.abs()
-                    && self.assemble(st, &trial, ind, false).is_ok_and(|t| {
+                    && self.assemble(st, &trial, ind, None).is_ok_and(|t| {
                         t.gradient.iter().fold(0.0f64, |m, g| m.max(g.abs())) < 0.5 * residual
                     })
                 {
@@ -561,11 +575,12 @@ impl Fem {
                 });
             }
             st.u = trial;
+            secant = self.options.slip_secant && alpha < 1.0;
             if alpha == 1.0 && step_max <= 1e-8 * length {
                 return Ok(());
             }
         }
-        let a = self.assemble(st, &st.u, ind, false)?;
+        let a = self.assemble(st, &st.u, ind, None)?;
         Err(Failure::NotConverged {
             iterations: self.options.max_newton,
             residual: a.gradient.iter().fold(0.0f64, |m, g| m.max(g.abs())),
@@ -673,6 +688,12 @@ struct NodeTerms {
     slip: bool,
 }
 
+/// `secant`: a slipping node's friction Hessian is its secant stiffness A e_t b/|t| in both
+/// tangential directions instead of the consistent A e_t b/|t| (I − d dᵀ). The quadratic with that
+/// curvature lies above the friction potential (from |t| ≤ |t₀|/2 + |t|²/(2|t₀|); Weiszfeld's
+/// majorization, as in iteratively reweighted least squares for Huber's loss), so its step
+/// cannot overshoot the kink at the stick disc.
+#[allow(clippy::too_many_arguments)]
 fn contact_terms(
     st: &State,
     n: usize,
@@ -681,6 +702,7 @@ fn contact_terms(
     u: &[f64],
     xy: [f64; 2],
     ind: &Indenter,
+    secant: bool,
 ) -> NodeTerms {
     let mut t = NodeTerms {
         energy: 0.0,
@@ -730,7 +752,8 @@ fn contact_terms(
                 t.gradient[d] += area * b * dir[d];
                 for e in 0..2 {
                     let delta = if d == e { 1.0 } else { 0.0 };
-                    t.hessian[d][e] += area * et * (b / norm) * (delta - dir[d] * dir[e]);
+                    let along = if secant { 0.0 } else { dir[d] * dir[e] };
+                    t.hessian[d][e] += area * et * (b / norm) * (delta - along);
                 }
             }
             t.traction = [-b * dir[0], -b * dir[1]];
@@ -1350,6 +1373,7 @@ impl Fem {
                 &st.u[3 * n..3 * n + 3],
                 [mesh.x[i], mesh.y[j]],
                 ind,
+                false,
             );
             pressure[n] = t.pressure;
             traction[n] = t.traction;
@@ -1624,6 +1648,79 @@ mod tests {
     }
 
     #[test]
+    fn the_secant_friction_quadratic_lies_above_the_potential_and_the_tangent_does_not() {
+        // A press, then a slide whose trial tractions leave the stick disc: at each slipping
+        // node, the friction potential at w + δ against the quadratic model of each Hessian.
+        let (grid, gap) = shallow();
+        let mut fem = Fem::new(layer(1.0, 0.5), grid);
+        press(&mut fem, &gap);
+        let mut st = fem.state.take().unwrap();
+        // No normal term: every node lowered far below the indenter, multipliers zero.
+        st.lambda.iter_mut().for_each(|l| *l = 0.0);
+        let shift = vec![[0.02, 0.0]; grid.len()];
+        let ind = Indenter {
+            grid,
+            height_mm: &gap.gap_mm,
+            approach_mm: 0.0,
+            shift_mm: &shift,
+        };
+        let eps = fem.penalty(&st.mesh);
+        let nx = st.mesh.x.len();
+        let (mut slipping, mut tangent_below) = (0, 0);
+        for n in 0..st.lambda.len() {
+            let (i, j) = (n % nx, n / nx);
+            let area = st.mesh.surface_area_mm2(i, j);
+            let xy = [st.mesh.x[i], st.mesh.y[j]];
+            let u0 = [st.u[3 * n], st.u[3 * n + 1], -1.0];
+            let at = |u: &[f64], secant| contact_terms(&st, n, area, eps, u, xy, &ind, secant);
+            let (sec, tan) = (at(&u0, true), at(&u0, false));
+            if !sec.slip {
+                continue;
+            }
+            slipping += 1;
+            // The trial traction's length over the tangential penalty: how far w moves before
+            // the trial reaches the disc's centre (the secant stiffness is A e_t b / |t|).
+            let et = TANGENTIAL_PENALTY * eps;
+            let reach = area * st.bound[n] / sec.hessian[0][0];
+            assert!(reach > st.bound[n] / et);
+            for k in 0..16 {
+                let angle = k as f64 * std::f64::consts::PI / 8.0;
+                for scale in [0.25, 0.5, 1.0, 1.5, 2.0, 3.0] {
+                    let d = [
+                        scale * reach * angle.cos(),
+                        scale * reach * angle.sin(),
+                        0.0,
+                    ];
+                    let u = [u0[0] + d[0], u0[1] + d[1], u0[2]];
+                    let exact = at(&u, false).energy;
+                    let model = |t: &NodeTerms| {
+                        let mut m = t.energy;
+                        for r in 0..3 {
+                            m += t.gradient[r] * d[r];
+                            for c in 0..3 {
+                                m += 0.5 * d[r] * t.hessian[r][c] * d[c];
+                            }
+                        }
+                        m
+                    };
+                    let tol = 1e-9 * sec.energy.abs().max(1e-12);
+                    assert!(
+                        exact <= model(&sec) + tol,
+                        "node {n}: {exact} > {}",
+                        model(&sec)
+                    );
+                    if exact > model(&tan) + tol {
+                        tangent_below += 1;
+                    }
+                }
+            }
+        }
+        assert!(slipping > 10, "{slipping} slipping nodes");
+        // The consistent tangent, flat along the slip, falls below the potential there.
+        assert!(tangent_below > 0);
+    }
+
+    #[test]
     fn preconditioned_steps_match_a_fresh_factorisation() {
         // The Newton system of a pressed state solved by conjugate gradients preconditioned
         // with the factor of the Hessian before four nodes came into contact (their normal
@@ -1639,7 +1736,7 @@ mod tests {
             approach_mm: 0.0,
             shift_mm: &shift,
         };
-        let now = fem.assemble(&st, &st.u, &ind, true).ok().unwrap();
+        let now = fem.assemble(&st, &st.u, &ind, Some(false)).ok().unwrap();
         let mut pressed_nodes: Vec<usize> = (0..st.lambda.len()).collect();
         pressed_nodes.sort_by(|a, b| st.lambda[*b].total_cmp(&st.lambda[*a]));
         let mut stale = now.hessian.clone();
