@@ -196,7 +196,7 @@ impl PixelInputs {
             Frames::Levels(f) => {
                 let (a, b) = (&f[now], &f[before]);
                 let plane = self.size[0] * self.size[1];
-                // a division, as before light normalization, so that plain inputs keep their bits
+                // Divided, not multiplied by a reciprocal: plain inputs are (v − 127.5) / 255 exactly.
                 let divisor: [f32; 3] = match self.gains.get(now) {
                     Some(g) if self.light_normalized => {
                         std::array::from_fn(|c| (255.0 * g[c]) as f32)

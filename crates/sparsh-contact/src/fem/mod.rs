@@ -251,6 +251,15 @@ impl Indenter<'_> {
     }
 }
 
+/// The friction Hessian of a slipping node (see [`contact_terms`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum SlipStiffness {
+    /// The consistent tangent A e_t b/|t| (I − d dᵀ): none along the slip.
+    Consistent,
+    /// The secant A e_t b/|t| in both tangential directions.
+    Secant,
+}
+
 /// A potential's value, gradient over the free dofs and (optionally) Hessian values.
 struct Assembled {
     energy: f64,
@@ -378,14 +387,14 @@ impl Fem {
         state
     }
 
-    /// Assembles the potential at `u` (fixed multipliers and friction bounds); `hessian`: with
-    /// its Hessian, `Some(true)` with slipping nodes' secant stiffness ([`contact_terms`]).
+    /// Assembles the potential at `u` (fixed multipliers and friction bounds), with its Hessian
+    /// when `hessian` says which slip stiffness it takes.
     fn assemble(
         &self,
         st: &State,
         u: &[f64],
         ind: &Indenter,
-        hessian: Option<bool>,
+        hessian: Option<SlipStiffness>,
     ) -> Result<Assembled, Failure> {
         let mesh = &st.mesh;
         let sys = &st.system;
@@ -451,7 +460,7 @@ impl Fem {
                 &u[3 * n..3 * n + 3],
                 [mesh.x[i], mesh.y[j]],
                 ind,
-                hessian == Some(true),
+                hessian.unwrap_or(SlipStiffness::Consistent),
             );
             energy += c.energy;
             peak_contact_force = peak_contact_force.max(area * c.pressure);
@@ -503,7 +512,17 @@ impl Fem {
             let (i, j) = (n % nx, n / nx);
             let area = mesh.surface_area_mm2(i, j);
             let xy = [mesh.x[i], mesh.y[j]];
-            energy += contact_terms(st, n, area, eps, &u[3 * n..3 * n + 3], xy, ind, false).energy;
+            energy += contact_terms(
+                st,
+                n,
+                area,
+                eps,
+                &u[3 * n..3 * n + 3],
+                xy,
+                ind,
+                SlipStiffness::Consistent,
+            )
+            .energy;
         }
         Ok(energy)
     }
@@ -519,10 +538,10 @@ impl Fem {
         // Nodal forces below 1e-5 of the largest contact force (and below 1e-8 of E times a
         // fine element's face, round-off of the volumetric terms) are noise (mN).
         let floor = 1e-8 * self.gel.youngs_modulus_kpa * st.mesh.fine_mm.powi(2);
-        let mut secant = false;
+        let mut slip = SlipStiffness::Consistent;
         for it in 0..self.options.max_newton {
             let clock = Instant::now();
-            let a = self.assemble(st, &st.u, ind, Some(secant))?;
+            let a = self.assemble(st, &st.u, ind, Some(slip))?;
             self.stats.assemble_s += clock.elapsed().as_secs_f64();
             let residual = a.gradient.iter().fold(0.0f64, |m, g| m.max(g.abs()));
             if residual <= (1e-5 * a.peak_contact_force).max(floor) {
@@ -575,7 +594,11 @@ impl Fem {
                 });
             }
             st.u = trial;
-            secant = self.options.slip_secant && alpha < 1.0;
+            slip = if self.options.slip_secant && alpha < 1.0 {
+                SlipStiffness::Secant
+            } else {
+                SlipStiffness::Consistent
+            };
             if alpha == 1.0 && step_max <= 1e-8 * length {
                 return Ok(());
             }
@@ -688,9 +711,9 @@ struct NodeTerms {
     slip: bool,
 }
 
-/// `secant`: a slipping node's friction Hessian is its secant stiffness A e_t b/|t| in both
-/// tangential directions instead of the consistent A e_t b/|t| (I − d dᵀ). The quadratic with that
-/// curvature lies above the friction potential (from |t| ≤ |t₀|/2 + |t|²/(2|t₀|); Weiszfeld's
+/// `slip`: with [`SlipStiffness::Secant`] a slipping node's friction Hessian is its secant
+/// stiffness A e_t b/|t| in both tangential directions instead of the consistent
+/// A e_t b/|t| (I − d dᵀ). The quadratic with that curvature lies above the friction potential (from |t| ≤ |t₀|/2 + |t|²/(2|t₀|); Weiszfeld's
 /// majorization, as in iteratively reweighted least squares for Huber's loss), so its step
 /// cannot overshoot the kink at the stick disc.
 #[allow(clippy::too_many_arguments)]
@@ -702,7 +725,7 @@ fn contact_terms(
     u: &[f64],
     xy: [f64; 2],
     ind: &Indenter,
-    secant: bool,
+    slip: SlipStiffness,
 ) -> NodeTerms {
     let mut t = NodeTerms {
         energy: 0.0,
@@ -752,7 +775,10 @@ fn contact_terms(
                 t.gradient[d] += area * b * dir[d];
                 for e in 0..2 {
                     let delta = if d == e { 1.0 } else { 0.0 };
-                    let along = if secant { 0.0 } else { dir[d] * dir[e] };
+                    let along = match slip {
+                        SlipStiffness::Secant => 0.0,
+                        SlipStiffness::Consistent => dir[d] * dir[e],
+                    };
                     t.hessian[d][e] += area * et * (b / norm) * (delta - along);
                 }
             }
@@ -1373,7 +1399,7 @@ impl Fem {
                 &st.u[3 * n..3 * n + 3],
                 [mesh.x[i], mesh.y[j]],
                 ind,
-                false,
+                SlipStiffness::Consistent,
             );
             pressure[n] = t.pressure;
             traction[n] = t.traction;
@@ -1673,7 +1699,10 @@ mod tests {
             let xy = [st.mesh.x[i], st.mesh.y[j]];
             let u0 = [st.u[3 * n], st.u[3 * n + 1], -1.0];
             let at = |u: &[f64], secant| contact_terms(&st, n, area, eps, u, xy, &ind, secant);
-            let (sec, tan) = (at(&u0, true), at(&u0, false));
+            let (sec, tan) = (
+                at(&u0, SlipStiffness::Secant),
+                at(&u0, SlipStiffness::Consistent),
+            );
             if !sec.slip {
                 continue;
             }
@@ -1692,7 +1721,7 @@ mod tests {
                         0.0,
                     ];
                     let u = [u0[0] + d[0], u0[1] + d[1], u0[2]];
-                    let exact = at(&u, false).energy;
+                    let exact = at(&u, SlipStiffness::Consistent).energy;
                     let model = |t: &NodeTerms| {
                         let mut m = t.energy;
                         for r in 0..3 {
@@ -1736,7 +1765,10 @@ mod tests {
             approach_mm: 0.0,
             shift_mm: &shift,
         };
-        let now = fem.assemble(&st, &st.u, &ind, Some(false)).ok().unwrap();
+        let now = fem
+            .assemble(&st, &st.u, &ind, Some(SlipStiffness::Consistent))
+            .ok()
+            .unwrap();
         let mut pressed_nodes: Vec<usize> = (0..st.lambda.len()).collect();
         pressed_nodes.sort_by(|a, b| st.lambda[*b].total_cmp(&st.lambda[*a]));
         let mut stale = now.hessian.clone();
