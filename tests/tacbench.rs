@@ -536,6 +536,11 @@ fn bad_tacbench_configs_fail_on_one_line() {
         1,
     );
     assert_user_error(&run("light", &light), "light_normalize");
+    // a task's seeds, and validation on a shape the training split lacks
+    let zero_seeds = config(&[("force", "data")], "[1.0]") + "seeds = 0\n";
+    assert_user_error(&run("zero_seeds", &zero_seeds), "task[0].seeds");
+    let cube = config(&[("force", "data")], "[1.0]") + "validation_shapes = [\"cube\"]\n";
+    assert_user_error(&run("cube", &cube), "validation_shapes");
     // unknown keys and missing data
     assert_user_error(
         &run(

@@ -63,6 +63,8 @@ pub struct SequenceLabels {
     pub test: Option<bool>,
     /// Its class (the family name of a generated sequence, the textile of the official set).
     pub class: Option<String>,
+    /// Its indenter's name, where the data record it (see [`sparsh_data::Label::indenter`]).
+    pub indenter: Option<String>,
     /// The outcome of the whole sequence, when the layout records one (a grasp's success).
     pub outcome: Option<bool>,
     /// One entry per frame.
@@ -183,6 +185,7 @@ pub fn read_generated_labels(dir: &Path) -> Result<Vec<SequenceLabels>, Error> {
             Ok(SequenceLabels {
                 test: Some(test),
                 class: Some(first.family.clone()),
+                indenter: first.indenter.clone(),
                 outcome: None,
                 frames,
             })

@@ -22,6 +22,7 @@ fn sequence(n: usize, state: SlipState) -> SequenceLabels {
     SequenceLabels {
         test: Some(false),
         class: Some("ribs__digit".into()),
+        indenter: None,
         outcome: None,
         frames: (0..n)
             .map(|t| frame([0.01 * t as f64, 0.0, 0.5], state))
@@ -327,4 +328,100 @@ fn the_force_head_starts_at_the_training_mean() {
             .force_bias
             .is_none()
     );
+}
+
+/// 30 sequences of a force task: indenters cycle sphere, box, capsule, cylinder, and every
+/// sixth sequence is a held-out torus; `recorded`: the labels name them.
+fn shaped_run(
+    validation_shapes: &[&str],
+    recorded: bool,
+) -> Result<sparsh_bench::tacbench::run::TaskRun, String> {
+    use sparsh_bench::labels::LabelledData;
+    use std::sync::Arc;
+    let labels: Vec<SequenceLabels> = (0..30)
+        .map(|s| SequenceLabels {
+            test: Some(s % 6 == 5),
+            indenter: recorded.then(|| {
+                if s % 6 == 5 {
+                    "torus"
+                } else {
+                    ["sphere", "box", "capsule", "cylinder"][s % 4]
+                }
+                .into()
+            }),
+            ..sequence(1, SlipState::Stick)
+        })
+        .collect();
+    let samples = sparsh_bench::tacbench::tasks::TaskSamples {
+        kind: TaskKind::Force,
+        samples: (0..30)
+            .map(|s| Sample {
+                sequence: s,
+                frame: 0,
+                target: Target::Force([0.0, 0.0, 0.5]),
+            })
+            .collect(),
+        classes: Vec::new(),
+        sequence_class: vec![None; 30],
+    };
+    let data = Arc::new(LabelledData {
+        source: "shaped".into(),
+        dataset: sparsh_ssl::data::Dataset {
+            sequences: Vec::new(),
+            size: [1, 1],
+        },
+        labels,
+    });
+    let shapes: Vec<String> = validation_shapes.iter().map(|s| s.to_string()).collect();
+    sparsh_bench::tacbench::run::TaskRun::new(data, samples, &shapes)
+}
+
+#[test]
+fn validation_by_shape_holds_every_sequence_of_that_shape_and_none_other() {
+    let shape_of = |s: usize| {
+        if s % 6 == 5 {
+            "torus"
+        } else {
+            ["sphere", "box", "capsule", "cylinder"][s % 4]
+        }
+    };
+    let run = shaped_run(&["box"], true).expect("a split");
+    let seqs = |rows: &[usize]| -> Vec<usize> {
+        let mut s: Vec<usize> = rows
+            .iter()
+            .map(|&r| run.samples.samples[r].sequence)
+            .collect();
+        s.dedup();
+        s
+    };
+    let boxes: Vec<usize> = (0..30).filter(|&s| shape_of(s) == "box").collect();
+    assert_eq!(seqs(&run.val), boxes);
+    assert_eq!(seqs(&run.test), [5, 11, 17, 23, 29]);
+    // the seen-shape test split and training hold the other training shapes only
+    for &s in seqs(&run.seen).iter().chain(&run.train_sequences) {
+        assert!(
+            shape_of(s) != "box" && shape_of(s) != "torus",
+            "sequence {s}"
+        );
+    }
+    let mut all: Vec<usize> = [seqs(&run.val), seqs(&run.test), seqs(&run.seen)].concat();
+    all.extend(&run.train_sequences);
+    all.sort_unstable();
+    assert_eq!(all, (0..30).collect::<Vec<_>>());
+    // without it, validation is every fifth training sequence, whatever its shape
+    let by_sequence = shaped_run(&[], true).expect("a split");
+    assert!(seqs(&by_sequence.val).iter().any(|&s| shape_of(s) != "box"));
+}
+
+#[test]
+fn validation_by_an_untrained_or_unrecorded_shape_is_refused() {
+    let err = shaped_run(&["torus"], true).map(|_| ()).unwrap_err();
+    assert!(
+        err.contains("\"torus\"") && err.contains("box, capsule, cylinder, sphere"),
+        "{err}"
+    );
+    let err = shaped_run(&["cube"], true).map(|_| ()).unwrap_err();
+    assert!(err.contains("validation_shapes"), "{err}");
+    let err = shaped_run(&["box"], false).map(|_| ()).unwrap_err();
+    assert!(err.contains("regenerate"), "{err}");
 }

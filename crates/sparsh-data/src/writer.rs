@@ -33,6 +33,10 @@ pub struct Label {
     pub family: String,
     /// `train` or `test`.
     pub split: String,
+    /// The sequence's indenter: a mesh's file stem, a textured plate's pattern, else the shape
+    /// (`sphere`, `cylinder`, `cone`, `box`); absent in datasets written before it was recorded.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub indenter: Option<String>,
     /// Time since the sequence started (s).
     pub time_s: f64,
     /// Total contact force on the gel [Fx, Fy, Fz] (N); Fz > 0 presses.

@@ -799,6 +799,31 @@ fn cone_entry(o: DVec3, d: DVec3, k: f64, h: f64) -> Option<f64> {
 }
 
 impl IndenterSpec {
+    /// A short name of the shape for labels and splits: the mesh file's stem, the textured
+    /// plate's pattern, else the shape kind (`sphere`, `cylinder`, `cone`, `box`).
+    pub fn name(&self) -> String {
+        let kind = match self.shape {
+            ShapeKind::Sphere => "sphere",
+            ShapeKind::Cylinder => "cylinder",
+            ShapeKind::Cone => "cone",
+            ShapeKind::Box => "box",
+            ShapeKind::Texture => match self.pattern {
+                Some(Pattern::Ribs) => "ribs",
+                Some(Pattern::Weave) => "weave",
+                Some(Pattern::Knurl) => "knurl",
+                Some(Pattern::Dots) => "dots",
+                None => "texture",
+            },
+            ShapeKind::Mesh => "mesh",
+        };
+        match (&self.mesh, self.shape) {
+            (Some(path), ShapeKind::Mesh) => path
+                .file_stem()
+                .map_or(kind.to_string(), |s| s.to_string_lossy().into_owned()),
+            _ => kind.to_string(),
+        }
+    }
+
     /// Resolves the spec into a ray-castable indenter; `scene` is the scene file (errors name it,
     /// mesh paths are relative to it).
     pub fn build(&self, scene: &Path) -> Result<Indenter, SceneError> {

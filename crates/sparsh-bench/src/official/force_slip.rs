@@ -178,6 +178,7 @@ pub(super) fn load_force_batch(
             SequenceLabels {
                 test: Some(test),
                 class: Some(class.clone()),
+                indenter: None,
                 outcome: None,
                 frames: frame_labels,
             },

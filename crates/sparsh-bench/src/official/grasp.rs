@@ -74,6 +74,7 @@ pub(super) fn load_grasp_file(
                 SequenceLabels {
                     test,
                     class: names.as_ref().map(|v| v[g].clone()),
+                    indenter: None,
                     outcome: Some(grip != 0.0),
                     frames: vec![FrameLabel::default(); 3],
                 },

@@ -98,6 +98,7 @@ pub(super) fn load_pose_bag(
         SequenceLabels {
             test: split_of(path, 4),
             class,
+            indenter: None,
             outcome: None,
             frames: changes
                 .into_iter()

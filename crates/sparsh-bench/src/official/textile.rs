@@ -55,6 +55,7 @@ pub(super) fn load_textile_clip(
         SequenceLabels {
             test: split_of(dir, 4),
             class: Some(class),
+            indenter: None,
             outcome: None,
             frames: vec![FrameLabel::default(); picked.len()],
         },

@@ -34,6 +34,14 @@ pub struct TaskConfig {
     /// (default DIGIT's official [4, 4, 5]).
     #[serde(default = "digit_force_scale")]
     pub force_scale_n: [f64; 3],
+    /// Validate on these training indenters (the labels' `indenter`, e.g. `["box"]`) instead of
+    /// every fifth training sequence, so that epochs are chosen on a shape never trained on, as
+    /// the held-out test shapes are (default: none).
+    #[serde(default)]
+    pub validation_shapes: Vec<String>,
+    /// Probe and read-out seeds of this task (default `probe.seeds`).
+    #[serde(default)]
+    pub seeds: Option<usize>,
 }
 
 /// One `[[encoder]]`: pretrained weights and the recipe that trained them (architecture and
@@ -305,6 +313,9 @@ impl BenchConfig {
                     &format!("task[{i}].slip_cone_ratio"),
                     format!("must be positive, got {r}"),
                 );
+            }
+            if t.seeds == Some(0) {
+                return bad(&format!("task[{i}].seeds"), "must be at least 1".into());
             }
             if t.force_scale_n.iter().any(|s| !(s.is_finite() && *s > 0.0)) {
                 return bad(

@@ -2,7 +2,7 @@
 //! the epoch chosen on validation, score it on the held-out test sequences, and record the
 //! unit on disk so an interrupted run resumes where it stopped.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
@@ -106,9 +106,14 @@ pub struct TaskRun {
 
 impl TaskRun {
     /// Splits `samples` by sequence: the data's own test split when it has one (held-out
-    /// indenter shapes), else every fifth sequence; of the rest every fifth is validation, and
-    /// where the data hold out shapes another fifth is the seen-shape test split.
-    pub fn new(data: Arc<LabelledData>, samples: TaskSamples) -> Result<Self, String> {
+    /// indenter shapes), else every fifth sequence; of the rest every fifth is validation —
+    /// or, with `validation_shapes`, every sequence of those indenters — and where the data
+    /// hold out shapes another fifth is the seen-shape test split.
+    pub fn new(
+        data: Arc<LabelledData>,
+        samples: TaskSamples,
+        validation_shapes: &[String],
+    ) -> Result<Self, String> {
         let seqs: Vec<usize> = {
             let mut s: Vec<usize> = samples.samples.iter().map(|s| s.sequence).collect();
             s.dedup();
@@ -135,11 +140,44 @@ impl TaskRun {
             .filter(|&(k, &s)| !is_test(k, s))
             .map(|(_, &s)| s)
             .collect();
-        let val_seqs: Vec<usize> = rest.iter().copied().skip(4).step_by(5).collect();
-        let seen_seqs: Vec<usize> = if marked {
-            rest.iter().copied().skip(2).step_by(5).collect()
+        let (val_seqs, seen_seqs): (Vec<usize>, Vec<usize>) = if validation_shapes.is_empty() {
+            let val = rest.iter().copied().skip(4).step_by(5).collect();
+            let seen = if marked {
+                rest.iter().copied().skip(2).step_by(5).collect()
+            } else {
+                Vec::new()
+            };
+            (val, seen)
         } else {
-            Vec::new()
+            let shape_of = |s: usize| data.labels[s].indenter.as_deref();
+            if let Some(&s) = rest.iter().find(|&&s| shape_of(s).is_none()) {
+                return Err(format!(
+                    "validation_shapes needs each sequence's indenter, and sequence {s} has none \
+                     (labels.jsonl without `indenter`: regenerate the data)"
+                ));
+            }
+            let trained: BTreeSet<&str> = rest.iter().filter_map(|&s| shape_of(s)).collect();
+            if let Some(name) = validation_shapes
+                .iter()
+                .find(|n| !trained.contains(n.as_str()))
+            {
+                return Err(format!(
+                    "validation_shapes: no training sequence has indenter {name:?} (training \
+                     indenters: {})",
+                    trained.into_iter().collect::<Vec<_>>().join(", ")
+                ));
+            }
+            let (val, others): (Vec<usize>, Vec<usize>) = rest.iter().copied().partition(|&s| {
+                validation_shapes
+                    .iter()
+                    .any(|n| shape_of(s) == Some(n.as_str()))
+            });
+            let seen = if marked {
+                others.into_iter().skip(2).step_by(5).collect()
+            } else {
+                Vec::new()
+            };
+            (val, seen)
         };
         let train_sequences: Vec<usize> = rest
             .iter()
@@ -440,11 +478,6 @@ pub fn run(
         cfg.budgets.clone()
     };
     let epochs = if opts.quick { 2 } else { cfg.probe.epochs };
-    let seeds = if opts.quick {
-        1
-    } else {
-        cfg.probe.seeds as u64
-    };
     let reach = encoders
         .iter()
         .flat_map(|e| e.recipe.frame_offsets())
@@ -501,7 +534,7 @@ pub fn run(
             )
         })?;
         let data = Arc::new(data);
-        let tr = TaskRun::new(data.clone(), samples).map_err(|m| {
+        let tr = TaskRun::new(data.clone(), samples, &task.validation_shapes).map_err(|m| {
             Error::config(
                 &cfg.path,
                 format!("task[{ti}]"),
@@ -535,6 +568,11 @@ pub fn run(
                  dataset); this layout keeps none",
             ));
         }
+        let seeds = if opts.quick {
+            1
+        } else {
+            task.seeds.unwrap_or(cfg.probe.seeds) as u64
+        };
         let mut pixels: Option<PixelInputs> = None;
         let mut indentation: Option<PixelInputs> = None;
         for enc in &encoders {
