@@ -1,4 +1,4 @@
-//! `sparsh fieldprobe train | eval` end to end on a small generated dataset with fields: the
+//! `sparsh fieldprobe train | eval | objective` end to end on a small generated dataset with fields: the
 //! decoders, the references, the report files; training reads no field; one-line errors; the
 //! same run on wgpu as on the CPU.
 
@@ -119,6 +119,28 @@ fn fieldprobe_trains_without_fields_and_scores_against_them() {
     let tmp = tempfile::tempdir().unwrap();
     let dir = tmp.path();
     let data = setup(dir);
+
+    // the shear objective's check: a row per family, every training pair in contact scored
+    let out = sparsh(&[
+        "fieldprobe",
+        "objective",
+        "--config",
+        dir.join("fields.toml").to_str().unwrap(),
+        "--data",
+        data.to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let table = String::from_utf8_lossy(&out.stdout).to_string();
+    let families: Vec<&str> = table
+        .lines()
+        .skip(2)
+        .map(|l| l.split('|').nth(1).unwrap().trim())
+        .collect();
+    assert_eq!(families, ["digit_slide", "gs2017_slide"], "{table}");
+    for line in table.lines().skip(2) {
+        let pairs: usize = line.split('|').nth(2).unwrap().trim().parse().unwrap();
+        assert!(pairs > 0, "{line}");
+    }
 
     let out = train(dir, "fields.toml", &data, "run");
     assert!(out.status.success(), "{}", stderr(&out));
@@ -304,6 +326,16 @@ fn bad_field_probe_inputs_are_one_line_errors() {
         empty.to_str().unwrap(),
     ]);
     assert_user_error(&out, "run.json");
+    // the objective check on a directory that is no dataset
+    let out = sparsh(&[
+        "fieldprobe",
+        "objective",
+        "--config",
+        dir.join("ok.toml").to_str().unwrap(),
+        "--data",
+        empty.to_str().unwrap(),
+    ]);
+    assert_user_error(&out, "labels.jsonl");
 }
 
 /// `fieldprobe train` and `eval` with `--device wgpu` (Mesa's lavapipe here, a software Vulkan

@@ -1,4 +1,4 @@
-//! `sparsh fieldprobe train | eval`: T1A on a frozen encoder (`sparsh_bench::fields`).
+//! `sparsh fieldprobe train | eval | objective`: T1A on a frozen encoder (`sparsh_bench::fields`).
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -57,5 +57,13 @@ pub fn eval(run: &Path, data: &Path, packs: &[PathBuf], device: &Devices) -> Res
         run.join("eval").display(),
         start.elapsed().as_secs_f64()
     );
+    Ok(())
+}
+
+/// Prints, per family, the shear objective of the true, zero and uniform flows on the training
+/// pairs in contact.
+pub fn objective(config: &Path, data: &Path) -> Result<()> {
+    let rows = sparsh_bench::fields::run::objective_run(config, data)?;
+    print!("{}", sparsh_bench::fields::objective::markdown(&rows));
     Ok(())
 }

@@ -495,6 +495,17 @@ enum FieldprobeAction {
         #[command(flatten)]
         device: DeviceArgs,
     },
+    /// Check the shear branch's loss: per family, its value for the true lateral motion of the
+    /// gel, zero flow and a uniform flow on the training pairs in contact (reads the fields).
+    Objective {
+        /// Field-probe config (its recipe gives the input size and pair offset, its [loss] the
+        /// weights).
+        #[arg(long)]
+        config: PathBuf,
+        /// Dataset with fields.
+        #[arg(long)]
+        data: PathBuf,
+    },
     /// Score a run's decoders, the classical baselines and the markers on the held-out
     /// sequences against the ground-truth fields; writes RUN/eval/fields.csv, fields.md and
     /// fields_examples.png.
@@ -846,6 +857,7 @@ fn run(cli: Cli) -> Result<()> {
                 quick,
                 &device.choose_one("fieldprobe")?,
             ),
+            FieldprobeAction::Objective { config, data } => fieldprobe::objective(&config, &data),
             FieldprobeAction::Eval {
                 run,
                 data,

@@ -5,6 +5,7 @@
 //! - [`data`]: frame pairs (never the fields) for training; ground truth and markers for scoring.
 //! - [`dpt`]: the DPT decoder with its normal and shear branches.
 //! - [`loss`]: the self-supervised photometric losses and the warp.
+//! - [`objective`]: whether the shear loss scores the true flow below zero and uniform flows.
 //! - [`train`]: training on hooked tokens, self-supervised or supervised (the ceiling).
 //! - [`metrics`]: correlation, IoU, end-point and angular error per frame pair.
 //! - [`run`]: `sparsh fieldprobe train` and `eval`: decoders, references, tables, figures.
@@ -18,5 +19,6 @@ pub mod flow;
 pub mod geometry;
 pub mod loss;
 pub mod metrics;
+pub mod objective;
 pub mod run;
 pub mod train;

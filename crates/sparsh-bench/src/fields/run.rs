@@ -581,6 +581,18 @@ pub struct EvalSummary {
 /// The row that reads the true fields (the scorer's ceiling).
 pub const ORACLE: &str = "oracle (true fields)";
 
+/// `sparsh fieldprobe objective`: the shear objective of the config's loss weights on the
+/// training pairs of `data` in contact (reads the fields: a check of the loss, not a decoder).
+pub fn objective_run(
+    config_path: &Path,
+    data: &Path,
+) -> Result<Vec<super::objective::ObjectiveRow>, Error> {
+    let cfg = FieldProbeConfig::load(config_path)?;
+    let (recipe, offset) = cfg.recipe(config_path)?;
+    let pairs = load_pairs(data, &recipe, offset, &cfg, false)?;
+    super::objective::shear_objective(&pairs, &pairs.train, &cfg.loss)
+}
+
 /// `sparsh fieldprobe eval`: the encoders and decoders run on `device`.
 pub fn eval_run(
     run: &Path,
