@@ -46,11 +46,26 @@ impl HookTokens {
 /// ([`RowStats`]): the decoder reads standardized tokens, as the TacBench probe does.
 pub type TokenStats = RowStats;
 
+/// Floor of a position's standard deviation, as a fraction of the median over positions: a
+/// token position that barely varies in training (a patch no training contact reached) is not
+/// blown up on a test frame that does touch it.
+pub const POOLED_DEVIATION_FLOOR: f64 = 0.1;
+
 impl HookTokens {
-    /// The statistics of every row.
+    /// The statistics of every row, each position's deviation floored at
+    /// [`POOLED_DEVIATION_FLOOR`] times the median deviation over positions.
     pub fn stats(&self) -> TokenStats {
         let [n, k, t, d] = self.dims;
-        RowStats::of(&self.values, k * t * d, &(0..n).collect::<Vec<_>>())
+        let mut stats = RowStats::of(&self.values, k * t * d, &(0..n).collect::<Vec<_>>());
+        let mut deviations: Vec<f64> = stats.inv_std.iter().map(|s| 1.0 / s).collect();
+        deviations.sort_by(f64::total_cmp);
+        let floor = POOLED_DEVIATION_FLOOR * deviations[deviations.len() / 2];
+        if floor > 0.0 {
+            for s in &mut stats.inv_std {
+                *s = s.min(1.0 / floor);
+            }
+        }
+        stats
     }
 
     /// Standardizes every row with `stats`.
@@ -510,6 +525,15 @@ mod tests {
         }
         // a constant feature is centred, not blown up
         assert!(t.values.iter().skip(1).step_by(2).all(|v| *v == 0.0));
+        // and a test row that moves it is scaled by the pooled floor (a tenth of the median
+        // deviation, here feature 0's), not by its own zero deviation
+        let mut test = HookTokens {
+            values: vec![3.0, 11.0],
+            dims: [1, 1, 1, 2],
+        };
+        test.standardize(&stats);
+        let want = 1.0 / (POOLED_DEVIATION_FLOOR as f32 * sd);
+        assert!((test.values[1] - want).abs() < 1e-4, "{:?}", test.values);
     }
 
     /// A decoder saved with `save_file` and loaded onto a fresh draw predicts what it did.
