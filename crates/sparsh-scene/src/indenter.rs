@@ -814,14 +814,12 @@ impl IndenterSpec {
                 Some(Pattern::Dots) => "dots",
                 None => "texture",
             },
-            ShapeKind::Mesh => "mesh",
+            ShapeKind::Mesh => match self.mesh.as_deref().and_then(Path::file_stem) {
+                Some(stem) => return stem.to_string_lossy().into_owned(),
+                None => "mesh",
+            },
         };
-        match (&self.mesh, self.shape) {
-            (Some(path), ShapeKind::Mesh) => path
-                .file_stem()
-                .map_or(kind.to_string(), |s| s.to_string_lossy().into_owned()),
-            _ => kind.to_string(),
-        }
+        kind.to_string()
     }
 
     /// Resolves the spec into a ray-castable indenter; `scene` is the scene file (errors name it,
@@ -962,5 +960,25 @@ impl IndenterSpec {
                 Indenter::Mesh(Box::new(MeshIndenter::new(mesh)))
             }
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn an_indenter_is_named_by_its_mesh_pattern_or_shape() {
+        let name = |text: &str| toml::from_str::<IndenterSpec>(text).unwrap().name();
+        assert_eq!(name("shape = \"sphere\"\nradius_mm = 3.0"), "sphere");
+        assert_eq!(name("shape = \"box\"\nsize_mm = [3.0, 3.0, 4.0]"), "box");
+        assert_eq!(
+            name("shape = \"mesh\"\nmesh = \"../assets/meshes/hex_prism.glb\""),
+            "hex_prism"
+        );
+        assert_eq!(
+            name("shape = \"texture\"\npattern = \"knurl\"\npitch_mm = 1.0"),
+            "knurl"
+        );
     }
 }

@@ -175,6 +175,13 @@ pub fn normal_loss(
         + normal.mean() * w.normal_sparsity
 }
 
+/// The shear loss's photometric term: the Charbonnier penalty √(r² + ε²), ε = 10⁻³, of the
+/// residual r between `current` warped back by `flow` and `previous`, averaged.
+pub fn shear_photometric(flow: Tensor<4>, current: Tensor<4>, previous: Tensor<4>) -> Tensor<1> {
+    let r = warp(current, flow) - previous;
+    (r.clone() * r + 1e-6).sqrt().mean()
+}
+
 /// The shear branch's self-supervised loss (module docs).
 pub fn shear_loss(
     flow: Tensor<4>,
@@ -182,9 +189,8 @@ pub fn shear_loss(
     previous: Tensor<4>,
     w: &LossWeights,
 ) -> Tensor<1> {
-    let r = warp(current, flow.clone()) - previous.clone();
-    let charbonnier = (r.clone() * r + 1e-6).sqrt().mean();
-    charbonnier + edge_aware_smoothness(flow, previous) * w.shear_smoothness
+    shear_photometric(flow.clone(), current, previous.clone())
+        + edge_aware_smoothness(flow, previous) * w.shear_smoothness
 }
 
 #[cfg(test)]

@@ -11,7 +11,7 @@ use std::collections::BTreeMap;
 use burn::prelude::*;
 
 use super::data::{FramePairs, GroundTruth, Pair};
-use super::loss::{LossWeights, shear_loss, warp};
+use super::loss::{LossWeights, shear_loss, shear_photometric};
 use crate::Error;
 
 /// The candidate flows scored, in table order.
@@ -109,10 +109,10 @@ pub fn shear_objective(
 /// photometric term alone.
 fn score(flow: Tensor<4>, now: Tensor<4>, before: Tensor<4>, weights: &LossWeights) -> (f64, f64) {
     let scalar = |t: Tensor<1>| t.into_scalar::<f32>() as f64;
-    let r = warp(now.clone(), flow.clone()) - before.clone();
+    let photometric = shear_photometric(flow.clone(), now.clone(), before.clone());
     (
         scalar(shear_loss(flow, now, before, weights)),
-        scalar((r.clone() * r + 1e-6).sqrt().mean()),
+        scalar(photometric),
     )
 }
 
