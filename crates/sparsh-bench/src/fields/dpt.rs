@@ -9,6 +9,11 @@
 //! 2·patch. Fusion: RefineNet blocks (two residual convolution units) from the coarsest map to
 //! the finest, each result resized to the next map's size. Heads: 3 × 3 convolution, bilinear
 //! resize to the input, 3 × 3 convolution, ReLU, 1 × 1 convolution.
+//!
+//! Optionally (not in the official decoder) an **image skip**: two 3 × 3 convolutions on the
+//! encoder's own input `I_t ⊕ I_{t−k}` at full resolution, added to each head before its last
+//! ReLU, so that the maps are not bounded by the token grid (a 12 × 9 grid at 96 × 72 with patch
+//! 8), as U-Net's skips and monocular-depth decoders' image guidance do.
 
 use burn::nn::PaddingConfig2d;
 use burn::nn::conv::{Conv2d, Conv2dConfig, ConvTranspose2d, ConvTranspose2dConfig};
@@ -99,6 +104,27 @@ pub struct FieldDecoderConfig {
     /// Largest flow the shear branch can output (input pixels): `tanh · max_flow_px`.
     #[config(default = 4.0)]
     pub max_flow_px: f64,
+    /// Channels of the encoder's input the image skip reads (`I_t ⊕ I_{t−k}`: 6); 0 for none.
+    #[config(default = 0)]
+    pub image_skip_channels: usize,
+}
+
+/// Width of the image skip's features (the heads' hidden width).
+const SKIP_FEATURES: usize = 16;
+
+/// The image skip: `conv(relu(conv(input)))` at the input's resolution.
+#[derive(Module, Debug)]
+pub struct ImageSkip {
+    /// 3 × 3 convolution from the input channels.
+    pub conv1: Conv2d,
+    /// 3 × 3 convolution to the heads' hidden width.
+    pub conv2: Conv2d,
+}
+
+impl ImageSkip {
+    fn forward(&self, input: Tensor<4>) -> Tensor<4> {
+        self.conv2.forward(relu(self.conv1.forward(input)))
+    }
 }
 
 /// One reassemble stage.
@@ -176,9 +202,13 @@ pub struct DenseHead {
 }
 
 impl DenseHead {
-    fn forward(&self, x: Tensor<4>, size: [usize; 2]) -> Tensor<4> {
-        let y = resize(self.conv1.forward(x), size);
-        self.conv3.forward(relu(self.conv2.forward(y)))
+    fn forward(&self, x: Tensor<4>, size: [usize; 2], skip: Option<Tensor<4>>) -> Tensor<4> {
+        let y = self.conv2.forward(resize(self.conv1.forward(x), size));
+        let y = match skip {
+            Some(s) => y + s,
+            None => y,
+        };
+        self.conv3.forward(relu(y))
     }
 }
 
@@ -193,6 +223,8 @@ pub struct FieldDecoder {
     pub normal: DenseHead,
     /// Shear branch.
     pub shear: DenseHead,
+    /// Image skip, if configured.
+    pub image_skip: Option<ImageSkip>,
     /// Token grid.
     #[module(skip)]
     pub grid: [usize; 2],
@@ -244,15 +276,20 @@ impl FieldDecoderConfig {
         };
         let head = |outputs: usize| DenseHead {
             conv1: conv(c, c / 2, 3, device),
-            conv2: conv(c / 2, 16, 3, device),
-            conv3: conv(16, outputs, 1, device),
+            conv2: conv(c / 2, SKIP_FEATURES, 3, device),
+            conv3: conv(SKIP_FEATURES, outputs, 1, device),
         };
+        let image_skip = (self.image_skip_channels > 0).then(|| ImageSkip {
+            conv1: conv(self.image_skip_channels, SKIP_FEATURES, 3, device),
+            conv2: conv(SKIP_FEATURES, SKIP_FEATURES, 3, device),
+        });
         FieldDecoder {
             // ×4, ×2, ×1, ×½ of the token grid (−1 marks the strided convolution)
             reassemble: [4, 2, 1, -1].into_iter().map(stage).collect(),
             fusion: (0..4).map(|_| fusion()).collect(),
             normal: head(1),
             shear: head(2),
+            image_skip,
             grid: self.grid,
             img_size: self.img_size,
             max_flow_px: self.max_flow_px,
@@ -261,12 +298,13 @@ impl FieldDecoderConfig {
 }
 
 impl FieldDecoder {
-    /// Decodes hooked token maps.
+    /// Decodes hooked token maps; the image skip, if any, reads the encoder's `input`.
     ///
     /// # Shapes
     /// - `hooks`: four `[batch, tokens, dim]`, shallowest first
+    /// - `input`: `[batch, image_skip_channels, height, width]`, needed by the skip only
     /// - output: [`FieldOutput`]
-    pub fn forward(&self, hooks: Vec<Tensor<3>>) -> FieldOutput {
+    pub fn forward(&self, hooks: Vec<Tensor<3>>, input: Option<Tensor<4>>) -> FieldOutput {
         let [gh, gw] = self.grid;
         let maps: Vec<Tensor<4>> = hooks
             .into_iter()
@@ -288,9 +326,14 @@ impl FieldDecoder {
             path = Some(self.fusion[level].forward(path, maps[level].clone(), to));
         }
         let fused = path.expect("four levels");
+        let skip = self
+            .image_skip
+            .as_ref()
+            .map(|s| s.forward(input.expect("a decoder with the image skip is given its input")));
+        let size = self.img_size;
         FieldOutput {
-            normal: sigmoid(self.normal.forward(fused.clone(), self.img_size)),
-            flow: self.shear.forward(fused, self.img_size).tanh() * self.max_flow_px,
+            normal: sigmoid(self.normal.forward(fused.clone(), size, skip.clone())),
+            flow: self.shear.forward(fused, size, skip).tanh() * self.max_flow_px,
         }
     }
 }
@@ -342,25 +385,32 @@ mod tests {
         }
     }
 
-    /// An odd token grid (9 columns) still decodes to the input size, in range.
+    /// An odd token grid (9 columns) still decodes to the input size, in range, with and
+    /// without the image skip.
     #[test]
     fn decoder_outputs_bounded_maps_at_input_size() {
         let device = Device::flex();
-        let dec = FieldDecoderConfig::new(16, [12, 9], [96, 72])
-            .with_channels(8)
-            .with_max_flow_px(3.0)
-            .init(&device);
-        let hooks = (0..4)
-            .map(|_| {
-                Tensor::<3>::random([2, 108, 16], burn::tensor::Distribution::Default, &device)
-            })
-            .collect();
-        let out = dec.forward(hooks);
-        assert_eq!(out.normal.dims(), [2, 1, 96, 72]);
-        assert_eq!(out.flow.dims(), [2, 2, 96, 72]);
-        let n: Vec<f32> = out.normal.into_data().try_to_vec().unwrap();
-        let f: Vec<f32> = out.flow.into_data().try_to_vec().unwrap();
-        assert!(n.iter().all(|v| *v > 0.0 && *v < 1.0));
-        assert!(f.iter().all(|v| v.abs() <= 3.0));
+        for skip in [0, 6] {
+            let dec = FieldDecoderConfig::new(16, [12, 9], [96, 72])
+                .with_channels(8)
+                .with_max_flow_px(3.0)
+                .with_image_skip_channels(skip)
+                .init(&device);
+            assert_eq!(dec.image_skip.is_some(), skip > 0);
+            let hooks = (0..4)
+                .map(|_| {
+                    Tensor::<3>::random([2, 108, 16], burn::tensor::Distribution::Default, &device)
+                })
+                .collect();
+            let input =
+                Tensor::<4>::random([2, 6, 96, 72], burn::tensor::Distribution::Default, &device);
+            let out = dec.forward(hooks, Some(input));
+            assert_eq!(out.normal.dims(), [2, 1, 96, 72]);
+            assert_eq!(out.flow.dims(), [2, 2, 96, 72]);
+            let n: Vec<f32> = out.normal.into_data().try_to_vec().unwrap();
+            let f: Vec<f32> = out.flow.into_data().try_to_vec().unwrap();
+            assert!(n.iter().all(|v| *v > 0.0 && *v < 1.0));
+            assert!(f.iter().all(|v| v.abs() <= 3.0));
+        }
     }
 }

@@ -47,6 +47,9 @@ pub struct DecoderSection {
     pub channels: usize,
     /// Flow bound of the shear branch (input pixels).
     pub max_flow_px: f64,
+    /// Feed the encoder's input `I_t ⊕ I_{t−k}` at full resolution to the heads as well
+    /// ([`super::dpt::ImageSkip`]; not in the official decoder).
+    pub image_skip: bool,
 }
 
 impl Default for DecoderSection {
@@ -54,6 +57,7 @@ impl Default for DecoderSection {
         Self {
             channels: 32,
             max_flow_px: 4.0,
+            image_skip: false,
         }
     }
 }
@@ -250,7 +254,8 @@ fn decoder_config(cfg: &FieldProbeConfig, recipe: &Recipe) -> Result<FieldDecode
     Ok(
         FieldDecoderConfig::new(vit.embed_dim, [gh, gw], vit.img_size)
             .with_channels(cfg.decoder.channels)
-            .with_max_flow_px(cfg.decoder.max_flow_px),
+            .with_max_flow_px(cfg.decoder.max_flow_px)
+            .with_image_skip_channels(if cfg.decoder.image_skip { 6 } else { 0 }),
     )
 }
 
