@@ -104,10 +104,13 @@ pub struct FieldDecoderConfig {
     /// Largest flow the shear branch can output (input pixels): `tanh · max_flow_px`.
     #[config(default = 4.0)]
     pub max_flow_px: f64,
-    /// Channels of the encoder's input the image skip reads (`I_t ⊕ I_{t−k}`: 6); 0 for none.
-    #[config(default = 0)]
-    pub image_skip_channels: usize,
+    /// Add the image skip, which reads the encoder's input `I_t ⊕ I_{t−k}`.
+    #[config(default = false)]
+    pub image_skip: bool,
 }
+
+/// Channels of the encoder's input `I_t ⊕ I_{t−k}`: two RGB frames.
+pub const PAIR_CHANNELS: usize = 6;
 
 /// Width of the image skip's features (the heads' hidden width).
 const SKIP_FEATURES: usize = 16;
@@ -279,8 +282,8 @@ impl FieldDecoderConfig {
             conv2: conv(c / 2, SKIP_FEATURES, 3, device),
             conv3: conv(SKIP_FEATURES, outputs, 1, device),
         };
-        let image_skip = (self.image_skip_channels > 0).then(|| ImageSkip {
-            conv1: conv(self.image_skip_channels, SKIP_FEATURES, 3, device),
+        let image_skip = self.image_skip.then(|| ImageSkip {
+            conv1: conv(PAIR_CHANNELS, SKIP_FEATURES, 3, device),
             conv2: conv(SKIP_FEATURES, SKIP_FEATURES, 3, device),
         });
         FieldDecoder {
@@ -302,7 +305,7 @@ impl FieldDecoder {
     ///
     /// # Shapes
     /// - `hooks`: four `[batch, tokens, dim]`, shallowest first
-    /// - `input`: `[batch, image_skip_channels, height, width]`, needed by the skip only
+    /// - `input`: `[batch, PAIR_CHANNELS, height, width]`, needed by the skip only
     /// - output: [`FieldOutput`]
     pub fn forward(&self, hooks: Vec<Tensor<3>>, input: Option<Tensor<4>>) -> FieldOutput {
         let [gh, gw] = self.grid;
@@ -390,20 +393,23 @@ mod tests {
     #[test]
     fn decoder_outputs_bounded_maps_at_input_size() {
         let device = Device::flex();
-        for skip in [0, 6] {
+        for skip in [false, true] {
             let dec = FieldDecoderConfig::new(16, [12, 9], [96, 72])
                 .with_channels(8)
                 .with_max_flow_px(3.0)
-                .with_image_skip_channels(skip)
+                .with_image_skip(skip)
                 .init(&device);
-            assert_eq!(dec.image_skip.is_some(), skip > 0);
+            assert_eq!(dec.image_skip.is_some(), skip);
             let hooks = (0..4)
                 .map(|_| {
                     Tensor::<3>::random([2, 108, 16], burn::tensor::Distribution::Default, &device)
                 })
                 .collect();
-            let input =
-                Tensor::<4>::random([2, 6, 96, 72], burn::tensor::Distribution::Default, &device);
+            let input = Tensor::<4>::random(
+                [2, PAIR_CHANNELS, 96, 72],
+                burn::tensor::Distribution::Default,
+                &device,
+            );
             let out = dec.forward(hooks, Some(input));
             assert_eq!(out.normal.dims(), [2, 1, 96, 72]);
             assert_eq!(out.flow.dims(), [2, 2, 96, 72]);

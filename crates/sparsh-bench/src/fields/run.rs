@@ -255,7 +255,7 @@ fn decoder_config(cfg: &FieldProbeConfig, recipe: &Recipe) -> Result<FieldDecode
         FieldDecoderConfig::new(vit.embed_dim, [gh, gw], vit.img_size)
             .with_channels(cfg.decoder.channels)
             .with_max_flow_px(cfg.decoder.max_flow_px)
-            .with_image_skip_channels(if cfg.decoder.image_skip { 6 } else { 0 }),
+            .with_image_skip(cfg.decoder.image_skip),
     )
 }
 

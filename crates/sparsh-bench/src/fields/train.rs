@@ -11,7 +11,7 @@ use sparsh_ssl::device::seeded_module;
 use sparsh_ssl::vit::Vit;
 
 use super::data::{FramePairs, Pair, PairTruth};
-use super::dpt::{FieldDecoder, FieldDecoderConfig, hook_blocks};
+use super::dpt::{FieldDecoder, FieldDecoderConfig, PAIR_CHANNELS, hook_blocks};
 use super::loss::{LossWeights, Shading, normal_loss, shear_loss};
 
 /// Hooked token maps of a frozen encoder for a list of pairs.
@@ -21,7 +21,7 @@ pub struct HookTokens {
     pub values: Vec<f32>,
     /// The shape.
     pub dims: [usize; 4],
-    /// The encoder's inputs `I_t ⊕ I_{t−k}` of every row, `[pairs, 6, height, width]`
+    /// The encoder's inputs `I_t ⊕ I_{t−k}` of every row, `[pairs, PAIR_CHANNELS, height, width]`
     /// row-major, which the decoder's image skip reads; empty when not kept.
     pub inputs: Vec<f32>,
     /// `[height, width]` of the inputs.
@@ -39,18 +39,28 @@ impl HookTokens {
         }
     }
 
-    /// The four `[rows, tokens, dim]` maps of some rows and their inputs
-    /// `[rows, 6, height, width]` (if kept), on `device`.
-    fn batch(&self, rows: &[usize], device: &Device) -> (Vec<Tensor<3>>, Option<Tensor<4>>) {
+    /// The four `[rows, tokens, dim]` maps of some rows and, for `decoder`'s image skip, their
+    /// inputs `[rows, PAIR_CHANNELS, height, width]`, on `device`.
+    fn batch(
+        &self,
+        rows: &[usize],
+        decoder: &FieldDecoder,
+        device: &Device,
+    ) -> (Vec<Tensor<3>>, Option<Tensor<4>>) {
         let [_, k, t, d] = self.dims;
-        let inputs = (!self.inputs.is_empty()).then(|| {
+        let inputs = decoder.image_skip.is_some().then(|| {
             let [h, w] = self.input_size;
-            let n = 6 * h * w;
+            let n = PAIR_CHANNELS * h * w;
             let x: Vec<f32> = rows
                 .iter()
                 .flat_map(|&i| self.inputs[i * n..(i + 1) * n].iter().copied())
                 .collect();
-            Tensor::<1>::from_floats(x.as_slice(), device).reshape([rows.len(), 6, h, w])
+            Tensor::<1>::from_floats(x.as_slice(), device).reshape([
+                rows.len(),
+                PAIR_CHANNELS,
+                h,
+                w,
+            ])
         });
         let hooks = (0..k)
             .map(|h| {
@@ -132,13 +142,18 @@ pub fn encode_inputs(
     let hooks = hook_blocks(vit.blocks.len());
     let [h, w] = size;
     let (mut values, mut dims) = (Vec::new(), [n, hooks.len(), 0, vit.dim()]);
-    let mut inputs = Vec::with_capacity(n * 6 * h * w);
+    let mut inputs = Vec::with_capacity(n * PAIR_CHANNELS * h * w);
     for start in (0..n).step_by(32) {
         let rows = start..(start + 32).min(n);
         let chunk = input(rows.clone());
         inputs.extend_from_slice(&chunk);
-        let x =
-            Tensor::<1>::from_floats(chunk.as_slice(), &device).reshape([rows.len(), 1, 6, h, w]);
+        let x = Tensor::<1>::from_floats(chunk.as_slice(), &device).reshape([
+            rows.len(),
+            1,
+            PAIR_CHANNELS,
+            h,
+            w,
+        ]);
         let maps = vit.forward_hooks(x, &hooks);
         dims[2] = maps[0].dims()[1];
         values.extend(
@@ -287,7 +302,7 @@ pub fn train(
             rows.push(order[cursor]);
             cursor += 1;
         }
-        let (hooks, inputs) = tokens.batch(&rows, &device);
+        let (hooks, inputs) = tokens.batch(&rows, &model.decoder, &device);
         let out = model.decoder.forward(hooks, inputs);
         let loss = match signal {
             Signal::Frames { data, pairs } => {
@@ -341,7 +356,7 @@ pub fn predict(model: &FieldModel, tokens: &HookTokens) -> Vec<Prediction> {
     let rows: Vec<usize> = (0..tokens.dims[0]).collect();
     let mut out = Vec::with_capacity(rows.len());
     for chunk in rows.chunks(16) {
-        let (hooks, inputs) = tokens.batch(chunk, &device);
+        let (hooks, inputs) = tokens.batch(chunk, &model.decoder, &device);
         let y = model.decoder.forward(hooks, inputs);
         let [b, _, h, w] = y.normal.dims();
         let normal: Vec<f32> = y
@@ -455,7 +470,7 @@ mod tests {
                     })
                     .collect();
                 inputs.extend(square.iter().copied());
-                inputs.extend(std::iter::repeat_n(0.0, 5 * h * w));
+                inputs.extend(std::iter::repeat_n(0.0, (PAIR_CHANNELS - 1) * h * w));
                 normal.push(square);
             }
             let tokens = HookTokens {
@@ -481,10 +496,10 @@ mod tests {
             weights: LossWeights::default(),
         };
         // mean prediction on the square minus off it, over the test samples
-        let contrast = |skip: usize| {
+        let contrast = |skip: bool| {
             let cfg = FieldDecoderConfig::new(d, [gh, gw], [h, w])
                 .with_channels(8)
-                .with_image_skip_channels(skip);
+                .with_image_skip(skip);
             let signal = Signal::Fields(&targets);
             let device = Device::flex();
             let (model, _) = train(&train_tokens, signal, &cfg, opts, &device, &|_, _| {});
@@ -497,7 +512,7 @@ mod tests {
             }
             on.0 / on.1 - off.0 / off.1
         };
-        let (with, without) = (contrast(6), contrast(0));
+        let (with, without) = (contrast(true), contrast(false));
         assert!(with > 0.25, "with the skip: contrast {with}");
         assert!(without < 0.1, "without the skip: contrast {without}");
     }
@@ -582,7 +597,7 @@ mod tests {
         };
         let weights = LossWeights::default();
         let losses = |m: &FieldModel| {
-            let (hooks, inputs) = tokens.batch(&rows, &device);
+            let (hooks, inputs) = tokens.batch(&rows, &m.decoder, &device);
             let out = m.decoder.forward(hooks, inputs);
             (
                 normal_loss(out.normal, image(false), &m.shading, &weights),
