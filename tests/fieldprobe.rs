@@ -70,6 +70,9 @@ channels = 8
 [references]
 supervised = true
 random_draws = 2
+[ceiling]
+cnn = true
+channels = 4
 "#;
 
 /// Writes the recipe, weights of its architecture, the config and the dataset into `dir`.
@@ -96,8 +99,8 @@ fn train(dir: &Path, config: &str, data: &Path, out: &str) -> Output {
     train_on(dir, config, data, out, "cpu")
 }
 
-fn train_on(dir: &Path, config: &str, data: &Path, out: &str, device: &str) -> Output {
-    sparsh(&[
+fn train_args(dir: &Path, config: &str, data: &Path, out: &str, device: &str) -> Vec<String> {
+    [
         "fieldprobe",
         "train",
         "--config",
@@ -111,7 +114,14 @@ fn train_on(dir: &Path, config: &str, data: &Path, out: &str, device: &str) -> O
         "--quick",
         "--device",
         device,
-    ])
+    ]
+    .map(String::from)
+    .to_vec()
+}
+
+fn train_on(dir: &Path, config: &str, data: &Path, out: &str, device: &str) -> Output {
+    let args = train_args(dir, config, data, out, device);
+    sparsh(&args.iter().map(String::as_str).collect::<Vec<_>>())
 }
 
 #[test]
@@ -176,6 +186,7 @@ fn fieldprobe_trains_without_fields_and_scores_against_them() {
         "self-supervised",
         "supervised",
         "random-0",
+        sparsh_bench::fields::run::CEILING,
         "zero flow",
         "classical",
         "markers",
@@ -249,11 +260,40 @@ fn fieldprobe_trains_without_fields_and_scores_against_them() {
     );
     assert!(run.join("eval/fields_examples.png").is_file());
 
+    // --resume keeps the models whose settings did not change: a new loss weight of the
+    // contact retrains the supervised decoder and the ceiling only
+    let weighted = CONFIG.replace("random_draws = 2", "random_draws = 2\ncontact_weight = 3.0");
+    std::fs::write(dir.join("weighted.toml"), weighted).unwrap();
+    let before = std::fs::read(run.join("decoders/self-supervised.bpk")).unwrap();
+    let mut args = train_args(dir, "weighted.toml", &data, "run", "cpu");
+    args.push("--resume".into());
+    let out = sparsh(&args.iter().map(String::as_str).collect::<Vec<_>>());
+    assert!(out.status.success(), "{}", stderr(&out));
+    let log = stderr(&out);
+    for name in ["self-supervised", "random-0"] {
+        assert!(
+            log.contains(&format!("  {name}: kept from the earlier run")),
+            "{log}"
+        );
+    }
+    assert!(log.contains("  supervised: step 1/3"), "{log}");
+    assert!(log.contains("ceiling CNN: step 3/3"), "{log}");
+    assert_eq!(
+        std::fs::read(run.join("decoders/self-supervised.bpk")).unwrap(),
+        before
+    );
+    let record = sparsh_bench::fields::run::read_run(&run).unwrap();
+    assert_eq!(record.config.references.contact_weight, 3.0);
+    assert_eq!(record.decoders.len(), 3);
+    assert_eq!(record.ceiling.as_ref().unwrap().best_step, 3);
+
     // training reads no field: without fields/ the self-supervised decoders still train, the
     // supervised ceiling is a one-line error naming the missing file
     let bare = dir.join("bare");
     copy_dir(&data, &bare, "fields");
-    let selfsup = CONFIG.replace("supervised = true", "supervised = false");
+    let selfsup = CONFIG
+        .replace("supervised = true", "supervised = false")
+        .replace("cnn = true", "cnn = false");
     std::fs::write(dir.join("selfsup.toml"), selfsup).unwrap();
     let out = train(dir, "selfsup.toml", &bare, "run_bare");
     assert!(out.status.success(), "{}", stderr(&out));
@@ -295,6 +335,15 @@ fn bad_field_probe_inputs_are_one_line_errors() {
         ("[train]\nsteps = 0\n", "train.steps"),
         ("[decoder]\nchannels = 3\n", "decoder.channels"),
         ("[loss]\nssim = 1.5\n", "loss.ssim"),
+        (
+            "[references]\ncontact_weight = -1.0\n",
+            "references.contact_weight",
+        ),
+        (
+            "[ceiling]\nvalidation_period = 1\n",
+            "ceiling.validation_period",
+        ),
+        ("[ceiling]\nlr = 0.0\n", "ceiling.lr"),
     ];
     for (extra, needle) in cases {
         std::fs::write(

@@ -10,18 +10,20 @@ fn log(line: &str) {
     eprintln!("{line}");
 }
 
-/// Trains the decoders of a run into `out` (a new or empty directory), on `device`.
+/// Trains the decoders of a run into `out` (a new or empty directory, or with `resume` an
+/// earlier run's), on `device`.
 pub fn train(
     config: &Path,
     encoder: &Path,
     data: &Path,
     out: &Path,
     quick: bool,
+    resume: bool,
     device: &Devices,
 ) -> Result<()> {
-    if out.join("run.json").exists() {
+    if out.join("run.json").exists() && !resume {
         bail!(
-            "{}: holds a field-probe run already (choose another --out)",
+            "{}: holds a field-probe run already (choose another --out, or continue it with --resume)",
             out.display()
         );
     }
@@ -32,6 +34,7 @@ pub fn train(
         data,
         out,
         quick,
+        resume,
         device.main(),
         &log,
     )?;

@@ -492,6 +492,10 @@ enum FieldprobeAction {
         /// Smoke run: 3 steps per decoder, one random draw, 24 training pairs.
         #[arg(long)]
         quick: bool,
+        /// Continue a run in --out: keep each model already trained there whose encoder, data
+        /// and settings are unchanged, train the rest (e.g. a reference added to the config).
+        #[arg(long)]
+        resume: bool,
         #[command(flatten)]
         device: DeviceArgs,
     },
@@ -848,6 +852,7 @@ fn run(cli: Cli) -> Result<()> {
                 data,
                 out,
                 quick,
+                resume,
                 device,
             } => fieldprobe::train(
                 &config,
@@ -855,6 +860,7 @@ fn run(cli: Cli) -> Result<()> {
                 &data,
                 &out,
                 quick,
+                resume,
                 &device.choose_one("fieldprobe")?,
             ),
             FieldprobeAction::Objective { config, data } => fieldprobe::objective(&config, &data),

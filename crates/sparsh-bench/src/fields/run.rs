@@ -23,6 +23,9 @@ use sparsh_ssl::data::Stacking;
 use sparsh_ssl::recipe::Recipe;
 use sparsh_ssl::vit::Vit;
 
+use super::ceiling::{
+    CeilingRecord, CeilingSection, FieldCnn, pair_inputs, predict_ceiling, train_ceiling,
+};
 use super::data::{FramePairs, GroundTruth, Pair, PairTruth, marker_flow};
 use super::dpt::FieldDecoderConfig;
 use super::figures::{Panel, write_field_grid};
@@ -92,6 +95,9 @@ pub struct ReferenceSection {
     pub supervised: bool,
     /// Self-supervised decoders on this many random encoders (recipe seeds 0, 1, …).
     pub random_draws: usize,
+    /// Extra loss weight of the pixels in contact for the models trained on the fields (the
+    /// supervised decoder and the U-Net ceiling): 0 is the plain mean squared error.
+    pub contact_weight: f64,
 }
 
 impl Default for ReferenceSection {
@@ -99,6 +105,7 @@ impl Default for ReferenceSection {
         Self {
             supervised: true,
             random_draws: 3,
+            contact_weight: 0.0,
         }
     }
 }
@@ -130,6 +137,9 @@ pub struct FieldProbeConfig {
     /// References trained beside the decoder.
     #[serde(default)]
     pub references: ReferenceSection,
+    /// The supervised U-Net at the input's resolution, which reads no encoder.
+    #[serde(default)]
+    pub ceiling: CeilingSection,
 }
 
 fn two() -> usize {
@@ -162,6 +172,26 @@ impl FieldProbeConfig {
         }
         if !(cfg.decoder.max_flow_px.is_finite() && cfg.decoder.max_flow_px > 0.0) {
             return bad("decoder.max_flow_px", "must be a positive number");
+        }
+        let w = cfg.references.contact_weight;
+        if !(w.is_finite() && w >= 0.0) {
+            return bad("references.contact_weight", "must be a finite number ≥ 0");
+        }
+        let c = &cfg.ceiling;
+        if c.channels == 0 || c.steps == 0 || c.batch_size == 0 || c.validate_every == 0 {
+            return bad(
+                "ceiling.channels / steps / batch_size / validate_every",
+                "must be at least 1",
+            );
+        }
+        if c.validation_period < 2 {
+            return bad(
+                "ceiling.validation_period",
+                "must be at least 2 (every n-th training sequence validates)",
+            );
+        }
+        if !(c.lr.is_finite() && c.lr > 0.0) {
+            return bad("ceiling.lr", "must be a positive number");
         }
         let l = &cfg.loss;
         if !(0.0..=1.0).contains(&l.ssim) {
@@ -237,6 +267,9 @@ pub struct RunRecord {
     pub train_pairs: usize,
     /// The decoders.
     pub decoders: Vec<DecoderRecord>,
+    /// The U-Net ceiling, when trained.
+    #[serde(default)]
+    pub ceiling: Option<CeilingRecord>,
 }
 
 fn absolute(p: &Path) -> PathBuf {
@@ -288,14 +321,52 @@ fn load_pairs(
     Ok(pairs)
 }
 
+/// The settings a trained model depends on, besides the encoder and the data: the decoders'
+/// (`supervised` adds the fields' loss weight) or the U-Net's (`None`).
+fn settings(cfg: &FieldProbeConfig, model: Option<bool>) -> serde_json::Value {
+    let common = (
+        cfg.seed,
+        absolute(&cfg.recipe),
+        cfg.frame_stride,
+        cfg.decoder.max_flow_px,
+    );
+    match model {
+        Some(supervised) => serde_json::json!([
+            common,
+            cfg.decoder,
+            cfg.train,
+            cfg.loss,
+            supervised.then_some(cfg.references.contact_weight)
+        ]),
+        None => serde_json::json!([common, cfg.ceiling, cfg.references.contact_weight]),
+    }
+}
+
+/// Saves `model` to `RUN/decoders/<name>.bpk` through a temporary file.
+fn save_model<M: Module>(model: M, out: &Path, name: &str) -> Result<String, Error> {
+    let file = format!("{name}.bpk");
+    let path = out.join("decoders").join(&file);
+    let tmp = out.join("decoders").join(format!("{name}.bpk.tmp-write"));
+    model
+        .save_file(&tmp)
+        .map_err(|e| Error::file(&tmp, format!("{e:?}")))?;
+    std::fs::rename(&tmp, &path).map_err(|e| Error::file(&path, e))?;
+    Ok(file)
+}
+
 /// `sparsh fieldprobe train`: the encoders run and the decoders train on `device` (every model
-/// drawn on the CPU under its seed and moved; the saved decoders load on any device).
+/// drawn on the CPU under its seed and moved; the saved decoders load on any device). With
+/// `resume`, a model already in `out` is kept when the earlier run's encoder, data and the
+/// settings that model depends on are the same (so that a reference added to a config does
+/// not retrain the rest).
+#[allow(clippy::too_many_arguments)]
 pub fn train_run(
     config_path: &Path,
     encoder: &Path,
     data: &Path,
     out: &Path,
     quick: bool,
+    resume: bool,
     device: &Device,
     log: &dyn Fn(&str),
 ) -> Result<RunRecord, Error> {
@@ -304,20 +375,53 @@ pub fn train_run(
     let pretrained = load_pretrained(&recipe, encoder)?;
     let pairs = load_pairs(data, &recipe, offset, &cfg, quick)?;
     let dec_cfg = decoder_config(&cfg, &recipe)?;
+    let encoder_sha256 = sha256_file(encoder)?;
     let steps = if quick { 3 } else { cfg.train.steps };
     let draws = if quick {
         cfg.references.random_draws.min(1)
     } else {
         cfg.references.random_draws
     };
-    let targets = if cfg.references.supervised {
+    let earlier = if resume && out.join("run.json").is_file() {
+        let run = read_run(out)?;
+        let same = run.encoder_sha256 == encoder_sha256
+            && run.data == absolute(data)
+            && run.quick == quick
+            && run.train_pairs == pairs.train.len();
+        if !same {
+            log("field probe: the earlier run read another encoder or data; training every model");
+        }
+        same.then_some(run)
+    } else {
+        None
+    };
+    let kept = |name: &str, model: Option<bool>| {
+        earlier.as_ref().and_then(|run| {
+            let unchanged = settings(&run.config, model) == settings(&cfg, model);
+            let file_there = |file: &str| out.join("decoders").join(file).is_file();
+            match model {
+                Some(_) => run
+                    .decoders
+                    .iter()
+                    .find(|d| d.name == name && file_there(&d.file))
+                    .filter(|_| unchanged)
+                    .map(|d| (Some(d.clone()), None)),
+                None => run
+                    .ceiling
+                    .as_ref()
+                    .filter(|c| unchanged && file_there(&c.file))
+                    .map(|c| (None, Some(c.clone()))),
+            }
+        })
+    };
+    let targets = if cfg.references.supervised || cfg.ceiling.cnn {
         let truth = GroundTruth::new(&pairs);
         let truths = pairs
             .train
             .iter()
             .map(|&p| truth.pair(p))
             .collect::<Result<Vec<_>, _>>()?;
-        Some(Targets::new(&truths))
+        Some(Targets::new(&truths, cfg.references.contact_weight))
     } else {
         None
     };
@@ -337,6 +441,11 @@ pub fn train_run(
     let mut pretrained_tokens: Option<HookTokens> = None;
     let mut records = Vec::new();
     for (name, random_seed, supervised) in plan {
+        if let Some((Some(record), _)) = kept(&name, Some(supervised)) {
+            log(&format!("  {name}: kept from the earlier run"));
+            records.push(record);
+            continue;
+        }
         let t0 = Instant::now();
         let mut tokens = match random_seed {
             None => pretrained_tokens
@@ -369,13 +478,7 @@ pub fn train_run(
                 ));
             }
         });
-        let file = format!("{name}.bpk");
-        let path = out.join("decoders").join(&file);
-        let tmp = out.join("decoders").join(format!("{name}.bpk.tmp-write"));
-        model
-            .save_file(&tmp)
-            .map_err(|e| Error::file(&tmp, format!("{e:?}")))?;
-        std::fs::rename(&tmp, &path).map_err(|e| Error::file(&path, e))?;
+        let file = save_model(model, out, &name)?;
         let stats_path = out.join("decoders").join(format!("{name}.stats.json"));
         write_atomic(
             &stats_path,
@@ -392,6 +495,41 @@ pub fn train_run(
             file,
         });
     }
+    let ceiling = match (&targets, cfg.ceiling.cnn) {
+        (Some(targets), true) => Some(match kept(CEILING, None) {
+            Some((_, Some(record))) => {
+                log(&format!("  {CEILING}: kept from the earlier run"));
+                record
+            }
+            _ => {
+                let section = CeilingSection {
+                    steps: if quick { 3 } else { cfg.ceiling.steps },
+                    validate_every: if quick { 3 } else { cfg.ceiling.validate_every },
+                    ..cfg.ceiling.clone()
+                };
+                let sequence: Vec<usize> = pairs.train.iter().map(|p| p.sequence).collect();
+                let (model, mut record) = train_ceiling(
+                    &pair_inputs(&pairs, &pairs.train),
+                    pairs.size(),
+                    &sequence,
+                    targets,
+                    &section,
+                    cfg.decoder.max_flow_px,
+                    cfg.seed,
+                    device,
+                    log,
+                )
+                .map_err(|e| Error::file(data, e))?;
+                record.file = save_model(model, out, "ceiling-cnn")?;
+                log(&format!(
+                    "  {CEILING}: {:.0} s, step {} of {} kept",
+                    record.seconds, record.best_step, section.steps
+                ));
+                record
+            }
+        }),
+        _ => None,
+    };
     let record = RunRecord {
         config: FieldProbeConfig {
             recipe: absolute(&cfg.recipe),
@@ -399,16 +537,20 @@ pub fn train_run(
         },
         config_path: absolute(config_path),
         encoder: absolute(encoder),
-        encoder_sha256: sha256_file(encoder)?,
+        encoder_sha256,
         data: absolute(data),
         quick,
         train_pairs: pairs.train.len(),
         decoders: records,
+        ceiling,
     };
     let json = serde_json::to_vec_pretty(&record).expect("serializable");
     write_atomic(&out.join("run.json"), &json)?;
     Ok(record)
 }
+
+/// Name of the U-Net ceiling in tables.
+pub const CEILING: &str = "ceiling CNN (input resolution)";
 
 /// A decoder ready to predict: its name, encoder, model and token statistics.
 type Trained = (String, Vit, FieldModel, TokenStats, bool);
@@ -707,6 +849,38 @@ pub fn eval_run(
         thresholds.push((d.name.clone(), thr));
         examples.push((d.name.clone(), test_pred));
         models.push((d.name.clone(), vit, model, stats, flipped));
+    }
+    if let Some(c) = &record.ceiling {
+        let t0 = Instant::now();
+        let path = run.join("decoders").join(&c.file);
+        let model = FieldCnn::new(
+            cfg.ceiling.channels,
+            cfg.decoder.max_flow_px,
+            &Device::flex(),
+        )
+        .try_load_file(&path)
+        .map_err(|e| Error::file(&path, format!("{e:?}")))?;
+        let model = sparsh_ssl::device::on_device(model, device);
+        let predict =
+            |list: &[Pair]| predict_ceiling(&model, &pair_inputs(&pairs, list), [h, w], list.len());
+        let train_maps: Vec<Vec<f32>> = predict(&pairs.train)
+            .into_iter()
+            .map(|p| p.normal)
+            .collect();
+        let test_pred = predict(&pairs.test);
+        let thr = threshold_for(&train_maps);
+        let normals: Vec<Vec<f32>> = test_pred.iter().map(|p| p.normal.clone()).collect();
+        let flows: Vec<Vec<[f32; 2]>> = test_pred.iter().map(|p| p.flow.clone()).collect();
+        methods.push(MethodScores {
+            name: CEILING.into(),
+            per_pair: score_all(Some(&normals), Some(&flows), thr),
+        });
+        log(&format!(
+            "  {CEILING}: scored in {:.0} s (contact threshold {thr:.3})",
+            t0.elapsed().as_secs_f64()
+        ));
+        thresholds.push((CEILING.into(), thr));
+        examples.push((CEILING.into(), test_pred));
     }
     // classical baselines
     let t0 = Instant::now();

@@ -196,20 +196,24 @@ pub struct TrainOptions {
     pub weights: LossWeights,
 }
 
-/// Ground-truth targets of the supervised ceiling.
+/// Ground-truth targets of the supervised models (the decoder's ceiling and the U-Net).
 #[derive(Debug, Clone)]
 pub struct Targets {
     /// Per pair: pressure over `pressure_scale_kpa`, clipped to [0, 1].
     pub normal: Vec<Vec<f32>>,
     /// Per pair: flow (input pixels), interleaved x, y per pixel.
     pub flow: Vec<Vec<[f32; 2]>>,
+    /// Per pair: each pixel's loss weight, `1 + contact_weight` in contact and 1 outside.
+    pub weight: Vec<Vec<f32>>,
     /// The pressure that maps to 1 (the 95th percentile of the training pressures in contact).
     pub pressure_scale_kpa: f64,
 }
 
 impl Targets {
-    /// Targets from the truths of the training pairs.
-    pub fn new(truths: &[PairTruth]) -> Self {
+    /// Targets from the truths of the training pairs; pixels in contact weigh
+    /// `1 + contact_weight` in the loss (a contact covers a few per cent of a frame: with equal
+    /// weights the squared error is mostly the empty gel's).
+    pub fn new(truths: &[PairTruth], contact_weight: f64) -> Self {
         let mut inside: Vec<f32> = truths
             .iter()
             .flat_map(|t| {
@@ -235,8 +239,51 @@ impl Targets {
                 })
                 .collect(),
             flow: truths.iter().map(|t| t.flow_px.clone()).collect(),
+            weight: truths
+                .iter()
+                .map(|t| {
+                    t.contact
+                        .iter()
+                        .map(|&c| if c { 1.0 + contact_weight as f32 } else { 1.0 })
+                        .collect()
+                })
+                .collect(),
             pressure_scale_kpa: scale,
         }
+    }
+
+    /// The weighted squared errors of `normal` (`[b, 1, h, w]`) and `flow` (`[b, 2, h, w]`)
+    /// against the targets of `rows`: `Σ w·(D − D*)² / Σ w` and the same over both flow
+    /// components (halved), the normal and shear terms apart. With `contact_weight` 0 they are
+    /// the plain mean squared errors, the conditional mean of the map and the flow.
+    pub fn loss(
+        &self,
+        normal: Tensor<4>,
+        flow: Tensor<4>,
+        rows: &[usize],
+        device: &Device,
+    ) -> (Tensor<1>, Tensor<1>) {
+        let [b, _, h, w] = normal.dims();
+        let gather = |f: &dyn Fn(usize) -> Vec<f32>, channels: usize| {
+            let v: Vec<f32> = rows.iter().flat_map(|&i| f(i)).collect();
+            Tensor::<1>::from_floats(v.as_slice(), device).reshape([b, channels, h, w])
+        };
+        let tn = gather(&|i| self.normal[i].clone(), 1);
+        let tf = gather(
+            &|i| {
+                let f = &self.flow[i];
+                f.iter()
+                    .map(|v| v[0])
+                    .chain(f.iter().map(|v| v[1]))
+                    .collect()
+            },
+            2,
+        );
+        let weight = gather(&|i| self.weight[i].clone(), 1);
+        let total = weight.clone().sum();
+        let normal_term = ((normal - tn).powi_scalar(2) * weight.clone()).sum() / total.clone();
+        let flow_term = ((flow - tf).powi_scalar(2) * weight).sum() / (total * 2.0);
+        (normal_term, flow_term)
     }
 }
 
@@ -251,8 +298,9 @@ pub enum Signal<'a> {
         pairs: &'a [Pair],
     },
     /// Ground-truth targets, one per row of the tokens (the supervised ceiling): squared error
-    /// on the normal map and the flow (the conditional mean; an absolute error regresses sparse
-    /// contacts and small flows to their median, 0).
+    /// on the normal map and the flow, weighted towards the contact ([`Targets::loss`]; a
+    /// squared error, as an absolute one regresses sparse contacts and small flows to their
+    /// median, 0).
     Fields(&'a Targets),
 }
 
@@ -316,18 +364,8 @@ pub fn train(
                     )
             }
             Signal::Fields(t) => {
-                let normal: Vec<f32> = rows.iter().flat_map(|&i| t.normal[i].clone()).collect();
-                let flow: Vec<f32> = rows
-                    .iter()
-                    .flat_map(|&i| {
-                        let f = &t.flow[i];
-                        f.iter().map(|v| v[0]).chain(f.iter().map(|v| v[1]))
-                    })
-                    .collect();
-                let b = rows.len();
-                let tn = Tensor::<1>::from_floats(normal.as_slice(), &device).reshape([b, 1, h, w]);
-                let tf = Tensor::<1>::from_floats(flow.as_slice(), &device).reshape([b, 2, h, w]);
-                (out.normal - tn).powi_scalar(2).mean() + (out.flow - tf).powi_scalar(2).mean()
+                let (normal, flow) = t.loss(out.normal, out.flow, &rows, &device);
+                normal + flow
             }
         };
         let value = loss.clone().into_scalar::<f32>() as f64;
@@ -420,6 +458,7 @@ mod tests {
         let targets = Targets {
             normal,
             flow: vec![vec![[0.0; 2]; h * w]; n],
+            weight: vec![vec![1.0; h * w]; n],
             pressure_scale_kpa: 1.0,
         };
         let cfg = FieldDecoderConfig::new(d, [gh, gw], [h, w]).with_channels(16);
@@ -447,6 +486,40 @@ mod tests {
         }
         let mean = ious.iter().sum::<f64>() / n as f64;
         assert!(mean > 0.5, "mean IoU {mean}");
+    }
+
+    /// The supervised loss against a hand computation: on a 1 × 2 map with one pixel in
+    /// contact (weight 1 + 3) the normal term is (4·0.5² + 1·0.2²)/5 and the flow term
+    /// (4·(1² + 0²) + 1·(0² + 2²))/(2·5); with no weight, the plain means.
+    #[test]
+    fn the_supervised_loss_weighs_the_contact_as_computed_by_hand() {
+        let truth = PairTruth {
+            pressure_kpa: vec![10.0, 0.0],
+            indentation_mm: vec![0.0; 2],
+            contact: vec![true, false],
+            shear_traction_kpa: vec![0.0; 2],
+            flow_px: vec![[1.0, 0.0], [0.0, 0.0]],
+        };
+        let device = Device::flex();
+        let normal =
+            Tensor::<1>::from_floats([0.5f32, 0.2].as_slice(), &device).reshape([1, 1, 1, 2]);
+        let flow = Tensor::<1>::from_floats([0.0f32, 0.0, 0.0, 2.0].as_slice(), &device)
+            .reshape([1, 2, 1, 2]);
+        for (weight, want) in [
+            (3.0, [(4.0 * 0.25 + 0.04) / 5.0, (4.0 * 1.0 + 4.0) / 10.0]),
+            (0.0, [(0.25 + 0.04) / 2.0, (1.0 + 4.0) / 4.0]),
+        ] {
+            let targets = Targets::new(std::slice::from_ref(&truth), weight);
+            assert_eq!(targets.normal[0], [1.0, 0.0]);
+            let (n, f) = targets.loss(normal.clone(), flow.clone(), &[0], &device);
+            let got = [n.into_scalar::<f32>() as f64, f.into_scalar::<f32>() as f64];
+            for (g, w) in got.iter().zip(want) {
+                assert!(
+                    (g - w).abs() < 1e-6,
+                    "weight {weight}: {got:?} against {want:?}"
+                );
+            }
+        }
     }
 
     /// The image skip reads what the tokens do not show: the tokens are noise, the target is a
@@ -486,6 +559,7 @@ mod tests {
         let targets = Targets {
             normal,
             flow: vec![vec![[0.0; 2]; h * w]; 32],
+            weight: vec![vec![1.0; h * w]; 32],
             pressure_scale_kpa: 1.0,
         };
         let opts = TrainOptions {
