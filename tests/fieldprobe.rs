@@ -344,6 +344,7 @@ fn bad_field_probe_inputs_are_one_line_errors() {
             "ceiling.validation_period",
         ),
         ("[ceiling]\nlr = 0.0\n", "ceiling.lr"),
+        ("[train]\nshear_pairs = \"gel\"\n", "unknown variant `gel`"),
     ];
     for (extra, needle) in cases {
         std::fs::write(

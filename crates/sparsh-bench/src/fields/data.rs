@@ -38,6 +38,13 @@ pub struct SequenceInfo {
     pub geometry: InputGeometry,
 }
 
+impl SequenceInfo {
+    /// Whether the gel prints markers.
+    pub fn has_markers(&self) -> bool {
+        self.markers_px.first().is_some_and(|m| !m.is_empty())
+    }
+}
+
 /// Preprocessed frames and the pairs drawn from them.
 #[derive(Debug, Clone)]
 pub struct FramePairs {

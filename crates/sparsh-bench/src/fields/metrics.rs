@@ -115,7 +115,7 @@ pub fn angular_error(flow: &[[f32; 2]], truth: &[[f32; 2]], mask: Option<&[bool]
 
 /// The metrics of one frame pair, in table order; `None` where a metric does not apply (no
 /// contact, a method without that branch).
-pub const METRICS: [&str; 10] = [
+pub const METRICS: [&str; 11] = [
     "pearson_p",
     "spearman_p",
     "pearson_uz",
@@ -126,22 +126,50 @@ pub const METRICS: [&str; 10] = [
     "angular_contact_deg",
     "angular_all_deg",
     "pearson_flow_q",
+    "pearson_p_near",
 ];
+
+/// Radius (input pixels) by which the true contact is dilated for the correlation near it.
+pub const NEAR_CONTACT_PX: usize = 3;
+
+/// `mask` (`width` columns) dilated by a disc of `radius` pixels.
+pub fn dilate(mask: &[bool], width: usize, radius: usize) -> Vec<bool> {
+    let height = mask.len() / width;
+    let r = radius as isize;
+    let mut out = vec![false; mask.len()];
+    for (i, _) in mask.iter().enumerate().filter(|(_, m)| **m) {
+        let (y, x) = ((i / width) as isize, (i % width) as isize);
+        for dy in -r..=r {
+            for dx in -r..=r {
+                let (yy, xx) = (y + dy, x + dx);
+                let inside =
+                    (0..height as isize).contains(&yy) && (0..width as isize).contains(&xx);
+                if inside && dy * dy + dx * dx <= r * r {
+                    out[yy as usize * width + xx as usize] = true;
+                }
+            }
+        }
+    }
+    out
+}
 
 /// Whether a larger value of metric `k` of [`METRICS`] is better.
 pub fn higher_is_better(k: usize) -> bool {
     !(5..=8).contains(&k)
 }
 
-/// Scores of one prediction (normal map and/or flow) against its truth; `threshold` is the
-/// normal map's contact threshold.
+/// Scores of one prediction (normal map and/or flow, `width` pixels a row) against its truth;
+/// `threshold` is the normal map's contact threshold. The last, `pearson_p_near`, is r(p) over
+/// the true contact dilated by [`NEAR_CONTACT_PX`]: how the map follows the pressure where there
+/// is some, apart from how well it stays flat on the empty gel.
 pub fn score_pair(
     normal: Option<&[f32]>,
     flow: Option<&[[f32; 2]]>,
     truth: &PairTruth,
+    width: usize,
     threshold: f32,
-) -> [Option<f64>; 10] {
-    let mut out = [None; 10];
+) -> [Option<f64>; 11] {
+    let mut out = [None; 11];
     let contact = truth.in_contact();
     if let Some(n) = normal.filter(|_| contact) {
         out[0] = pearson(n, &truth.pressure_kpa);
@@ -149,6 +177,15 @@ pub fn score_pair(
         out[2] = pearson(n, &truth.indentation_mm);
         out[3] = spearman(n, &truth.indentation_mm);
         out[4] = iou(n, threshold, &truth.contact);
+        let near = dilate(&truth.contact, width, NEAR_CONTACT_PX);
+        let pick = |v: &[f32]| -> Vec<f32> {
+            v.iter()
+                .zip(&near)
+                .filter(|(_, m)| **m)
+                .map(|(x, _)| *x)
+                .collect()
+        };
+        out[10] = pearson(&pick(n), &pick(&truth.pressure_kpa));
     }
     if let Some(f) = flow {
         if contact {
@@ -182,6 +219,40 @@ mod tests {
         }
     }
 
+    /// Dilation by a disc: one pixel by radius 1 is the plus of five; by radius 2 the 13 pixels
+    /// within distance 2, cut at the border.
+    #[test]
+    fn dilation_is_a_disc_cut_at_the_border() {
+        let mut mask = vec![false; 25];
+        mask[12] = true;
+        let plus = dilate(&mask, 5, 1);
+        let on: Vec<usize> = (0..25).filter(|&i| plus[i]).collect();
+        assert_eq!(on, [7, 11, 12, 13, 17]);
+        assert_eq!(dilate(&mask, 5, 2).iter().filter(|&&m| m).count(), 13);
+        let mut corner = vec![false; 25];
+        corner[0] = true;
+        let on: Vec<usize> = (0..25).filter(|&i| dilate(&corner, 5, 1)[i]).collect();
+        assert_eq!(on, [0, 1, 5]);
+    }
+
+    /// Near the contact the correlation reads only the dilated contact: a map equal to the
+    /// pressure there (plus a constant) but with a bump far away scores 1 near the contact and
+    /// less over the frame.
+    #[test]
+    fn the_correlation_near_the_contact_ignores_the_far_gel() {
+        let (w, h) = (20usize, 20usize);
+        let contact: Vec<bool> = (0..w * h)
+            .map(|i| (i / w).abs_diff(5) <= 1 && (i % w).abs_diff(5) <= 1)
+            .collect();
+        let mut t = truth(vec![[0.0; 2]; w * h], contact);
+        t.pressure_kpa[5 * w + 5] = 20.0;
+        let mut map: Vec<f32> = t.pressure_kpa.iter().map(|p| p + 1.0).collect();
+        map[18 * w + 18] = 30.0;
+        let s = score_pair(Some(&map), None, &t, w, 5.0);
+        assert!((s[10].unwrap() - 1.0).abs() < 1e-9, "{s:?}");
+        assert!(s[0].unwrap() < 0.9, "{s:?}");
+    }
+
     /// A flow equal to a known synthetic field scores EPE 0 and angular error 0; a flow off by
     /// (3, 4) everywhere scores EPE 5.
     #[test]
@@ -191,12 +262,12 @@ mod tests {
             .collect();
         let contact: Vec<bool> = (0..200).map(|i| (i % 20) > 5 && (i % 20) < 14).collect();
         let t = truth(field.clone(), contact);
-        let s = score_pair(None, Some(&field), &t, 0.5);
+        let s = score_pair(None, Some(&field), &t, 20, 0.5);
         assert_eq!(s[5], Some(0.0));
         assert_eq!(s[6], Some(0.0));
         assert!(s[7].unwrap().abs() < 1e-3 && s[8].unwrap().abs() < 1e-3);
         let off: Vec<[f32; 2]> = field.iter().map(|v| [v[0] + 3.0, v[1] + 4.0]).collect();
-        let s = score_pair(None, Some(&off), &t, 0.5);
+        let s = score_pair(None, Some(&off), &t, 20, 0.5);
         assert!((s[6].unwrap() - 5.0).abs() < 1e-5);
     }
 

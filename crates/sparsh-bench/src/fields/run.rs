@@ -75,6 +75,21 @@ pub struct TrainSection {
     pub batch_size: usize,
     /// Peak learning rate.
     pub lr: f64,
+    /// The pairs the self-supervised shear loss reads: `"all"`, or `"markers"` — only those of
+    /// gels that print markers, whose texture moves with the gel (on a markerless gel the
+    /// shading moves with the indenter, and brightness constancy prefers its motion).
+    pub shear_pairs: ShearPairs,
+}
+
+/// `train.shear_pairs` of a field-probe config.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum ShearPairs {
+    /// Every training pair.
+    #[default]
+    All,
+    /// The pairs of marker gels.
+    Markers,
 }
 
 impl Default for TrainSection {
@@ -83,6 +98,7 @@ impl Default for TrainSection {
             steps: 600,
             batch_size: 8,
             lr: 1e-3,
+            shear_pairs: ShearPairs::All,
         }
     }
 }
@@ -321,8 +337,9 @@ fn load_pairs(
     Ok(pairs)
 }
 
-/// The settings a trained model depends on, besides the encoder and the data: the decoders'
-/// (`supervised` adds the fields' loss weight) or the U-Net's (`None`).
+/// The settings a trained model depends on, besides the encoder and the data: a
+/// self-supervised decoder's (`Some(false)`), the supervised decoder's (`Some(true)`) or the
+/// U-Net's (`None`).
 fn settings(cfg: &FieldProbeConfig, model: Option<bool>) -> serde_json::Value {
     let common = (
         cfg.seed,
@@ -331,13 +348,15 @@ fn settings(cfg: &FieldProbeConfig, model: Option<bool>) -> serde_json::Value {
         cfg.decoder.max_flow_px,
     );
     match model {
-        Some(supervised) => serde_json::json!([
+        // the supervised decoder reads neither the self-supervised loss nor its pairs
+        Some(true) => serde_json::json!([
             common,
             cfg.decoder,
-            cfg.train,
-            cfg.loss,
-            supervised.then_some(cfg.references.contact_weight)
+            [cfg.train.steps, cfg.train.batch_size],
+            cfg.train.lr,
+            cfg.references.contact_weight
         ]),
+        Some(false) => serde_json::json!([common, cfg.decoder, cfg.train, cfg.loss]),
         None => serde_json::json!([common, cfg.ceiling, cfg.references.contact_weight]),
     }
 }
@@ -461,6 +480,7 @@ pub fn train_run(
             lr: cfg.train.lr,
             seed: cfg.seed,
             weights: cfg.loss,
+            shear_on_markers: cfg.train.shear_pairs == ShearPairs::Markers,
         };
         let every = (steps / 10).max(1);
         let signal = match (&targets, supervised) {
@@ -579,7 +599,7 @@ pub fn read_run(run: &Path) -> Result<RunRecord, Error> {
 struct MethodScores {
     name: String,
     /// Per test pair, the metrics of [`METRICS`].
-    per_pair: Vec<[Option<f64>; 10]>,
+    per_pair: Vec<[Option<f64>; 11]>,
 }
 
 /// One row of the results: a method's metric over a subset of test sequences.
@@ -604,7 +624,7 @@ pub struct ResultRow {
 /// Per-sequence means of metric `k`, from `rows` (indices into the test pairs).
 fn sequence_means(
     pairs: &[Pair],
-    scores: &[[Option<f64>; 10]],
+    scores: &[[Option<f64>; 11]],
     k: usize,
     rows: &[usize],
 ) -> Vec<(usize, f64)> {
@@ -792,6 +812,7 @@ pub fn eval_run(
                     normals.map(|m| m[i].as_slice()),
                     flows.map(|f| f[i].as_slice()),
                     &test_truth[i],
+                    w,
                     thr,
                 )
             })
@@ -936,7 +957,7 @@ pub fn eval_run(
     thresholds.push((ORACLE.into(), oracle_thr));
     // markers, where printed
     let marker_rows: Vec<usize> = (0..pairs.test.len())
-        .filter(|&i| !pairs.sequences[pairs.test[i].sequence].markers_px[0].is_empty())
+        .filter(|&i| pairs.sequences[pairs.test[i].sequence].has_markers())
         .collect();
     if !marker_rows.is_empty() {
         let flows: Vec<Vec<[f32; 2]>> = pairs
@@ -1030,7 +1051,7 @@ fn write_csv(path: &Path, rows: &[ResultRow]) -> Result<(), Error> {
 }
 
 /// Column headings of the tables, in [`METRICS`] order.
-const HEADINGS: [&str; 10] = [
+const HEADINGS: [&str; 11] = [
     "r(p)",
     "ρ(p)",
     "r(−u_z)",
@@ -1041,6 +1062,7 @@ const HEADINGS: [&str; 10] = [
     "AE contact (°)",
     "AE all (°)",
     "r(‖F‖, ‖q‖)",
+    "r(p) near contact",
 ];
 
 fn markdown_tables(rows: &[ResultRow], record: &RunRecord) -> String {
