@@ -871,6 +871,7 @@ pub fn eval_run(
         examples.push((d.name.clone(), test_pred));
         models.push((d.name.clone(), vit, model, stats, flipped));
     }
+    let mut ceiling = None;
     if let Some(c) = &record.ceiling {
         let t0 = Instant::now();
         let path = run.join("decoders").join(&c.file);
@@ -902,6 +903,7 @@ pub fn eval_run(
         ));
         thresholds.push((CEILING.into(), thr));
         examples.push((CEILING.into(), test_pred));
+        ceiling = Some(model);
     }
     // classical baselines
     let t0 = Instant::now();
@@ -1031,6 +1033,7 @@ pub fn eval_run(
         markdown.push_str(&pack_report(
             pack,
             &models,
+            ceiling.as_ref(),
             &thresholds,
             intensity_thr,
             [h, w],
@@ -1185,11 +1188,11 @@ fn write_examples(
             &truths[i].pressure_kpa,
             &truths[i].flow_px,
         )];
-        for (name, preds) in decoders
-            .iter()
-            .filter(|(n, _)| n == "self-supervised" || n == "supervised" || n == "random-0")
-        {
-            row.push(panel(name, &preds[i].normal, &preds[i].flow));
+        for (name, preds) in decoders.iter().filter(|(n, _)| {
+            ["self-supervised", "supervised", "random-0", CEILING].contains(&n.as_str())
+        }) {
+            let title = if name == CEILING { "ceiling CNN" } else { name };
+            row.push(panel(title, &preds[i].normal, &preds[i].flow));
         }
         row.push(panel("classical", &intensity[i], &farneback[i]));
         rows.push(row);
@@ -1205,6 +1208,7 @@ fn write_examples(
 fn pack_report(
     pack_path: &Path,
     models: &[Trained],
+    ceiling: Option<&FieldCnn>,
     thresholds: &[(String, f32)],
     intensity_thr: f32,
     size: [usize; 2],
@@ -1280,6 +1284,23 @@ fn pack_report(
         }
         let (c, r, missed) = score(&maps, thr);
         md.push_str(&format!("| {name} | {c:.1} | {r:.1} | {missed} |\n"));
+    }
+    if let Some(cnn) = ceiling {
+        let thr = thresholds
+            .iter()
+            .find(|(m, _)| m == CEILING)
+            .map_or(0.5, |t| t.1);
+        let pair = |rows: &[usize]| -> Vec<f32> {
+            rows.iter()
+                .flat_map(|&i| frames[i].iter().chain(rest.iter()).copied())
+                .collect()
+        };
+        let maps: Vec<Vec<f32>> = predict_ceiling(cnn, &pair, size, frames.len())
+            .into_iter()
+            .map(|p| p.normal)
+            .collect();
+        let (c, r, missed) = score(&maps, thr);
+        md.push_str(&format!("| {CEILING} | {c:.1} | {r:.1} | {missed} |\n"));
     }
     let maps: Vec<Vec<f32>> = frames.iter().map(|f| intensity_map(f, n)).collect();
     let (c, r, missed) = score(&maps, intensity_thr);
