@@ -115,7 +115,7 @@ pub fn angular_error(flow: &[[f32; 2]], truth: &[[f32; 2]], mask: Option<&[bool]
 
 /// The metrics of one frame pair, in table order; `None` where a metric does not apply (no
 /// contact, a method without that branch).
-pub const METRICS: [&str; 11] = [
+pub const METRICS: [&str; 12] = [
     "pearson_p",
     "spearman_p",
     "pearson_uz",
@@ -127,6 +127,7 @@ pub const METRICS: [&str; 11] = [
     "angular_all_deg",
     "pearson_flow_q",
     "pearson_p_near",
+    "flow_spread_px",
 ];
 
 /// Radius (input pixels) by which the true contact is dilated for the correlation near it.
@@ -153,7 +154,23 @@ pub fn dilate(mask: &[bool], width: usize, radius: usize) -> Vec<bool> {
     out
 }
 
-/// Whether a larger value of metric `k` of [`METRICS`] is better.
+/// The spread of a flow over its frame: the root mean square of `F − F̄` (F̄ the frame's mean
+/// flow), in pixels — 0 for a uniform flow, whatever the frame shows.
+pub fn flow_spread(flow: &[[f32; 2]]) -> Option<f64> {
+    let n = flow.len() as f64;
+    if flow.is_empty() {
+        return None;
+    }
+    let mean = [0, 1].map(|c| flow.iter().map(|v| v[c] as f64).sum::<f64>() / n);
+    let ss: f64 = flow
+        .iter()
+        .map(|v| (v[0] as f64 - mean[0]).powi(2) + (v[1] as f64 - mean[1]).powi(2))
+        .sum();
+    Some((ss / n).sqrt())
+}
+
+/// Whether a larger value of metric `k` of [`METRICS`] is better (for the flow's spread, which
+/// no value is better at: whether it is larger, i.e. varies more over the frame).
 pub fn higher_is_better(k: usize) -> bool {
     !(5..=8).contains(&k)
 }
@@ -161,15 +178,16 @@ pub fn higher_is_better(k: usize) -> bool {
 /// Scores of one prediction (normal map and/or flow, `width` pixels a row) against its truth;
 /// `threshold` is the normal map's contact threshold. The last, `pearson_p_near`, is r(p) over
 /// the true contact dilated by [`NEAR_CONTACT_PX`]: how the map follows the pressure where there
-/// is some, apart from how well it stays flat on the empty gel.
+/// is some, apart from how well it stays flat on the empty gel; the flow's spread over the frame
+/// ([`flow_spread`]) shows a shear branch that outputs one uniform flow.
 pub fn score_pair(
     normal: Option<&[f32]>,
     flow: Option<&[[f32; 2]]>,
     truth: &PairTruth,
     width: usize,
     threshold: f32,
-) -> [Option<f64>; 11] {
-    let mut out = [None; 11];
+) -> [Option<f64>; 12] {
+    let mut out = [None; 12];
     let contact = truth.in_contact();
     if let Some(n) = normal.filter(|_| contact) {
         out[0] = pearson(n, &truth.pressure_kpa);
@@ -195,6 +213,7 @@ pub fn score_pair(
             out[9] = pearson(&mag, &truth.shear_traction_kpa);
         }
         out[6] = endpoint_error(f, &truth.flow_px, None);
+        out[11] = flow_spread(f);
         out[8] = angular_error(f, &truth.flow_px, None);
     }
     out
@@ -217,6 +236,18 @@ mod tests {
             shear_traction_kpa: vec![1.0; n],
             flow_px: flow,
         }
+    }
+
+    /// A uniform flow spreads by 0; a flow of +1 and −1 px along x on half the pixels each by
+    /// exactly 1 px, whatever its mean.
+    #[test]
+    fn a_uniform_flow_has_no_spread() {
+        assert_eq!(flow_spread(&[[0.3, -2.0]; 10]), Some(0.0));
+        let split: Vec<[f32; 2]> = (0..10)
+            .map(|i| [if i % 2 == 0 { 1.5 } else { -0.5 }, 4.0])
+            .collect();
+        assert!((flow_spread(&split).unwrap() - 1.0).abs() < 1e-12);
+        assert_eq!(flow_spread(&[]), None);
     }
 
     /// Dilation by a disc: one pixel by radius 1 is the plus of five; by radius 2 the 13 pixels

@@ -599,7 +599,7 @@ pub fn read_run(run: &Path) -> Result<RunRecord, Error> {
 struct MethodScores {
     name: String,
     /// Per test pair, the metrics of [`METRICS`].
-    per_pair: Vec<[Option<f64>; 11]>,
+    per_pair: Vec<[Option<f64>; 12]>,
 }
 
 /// One row of the results: a method's metric over a subset of test sequences.
@@ -624,7 +624,7 @@ pub struct ResultRow {
 /// Per-sequence means of metric `k`, from `rows` (indices into the test pairs).
 fn sequence_means(
     pairs: &[Pair],
-    scores: &[[Option<f64>; 11]],
+    scores: &[[Option<f64>; 12]],
     k: usize,
     rows: &[usize],
 ) -> Vec<(usize, f64)> {
@@ -1054,7 +1054,7 @@ fn write_csv(path: &Path, rows: &[ResultRow]) -> Result<(), Error> {
 }
 
 /// Column headings of the tables, in [`METRICS`] order.
-const HEADINGS: [&str; 11] = [
+const HEADINGS: [&str; 12] = [
     "r(p)",
     "ρ(p)",
     "r(−u_z)",
@@ -1066,6 +1066,7 @@ const HEADINGS: [&str; 11] = [
     "AE all (°)",
     "r(‖F‖, ‖q‖)",
     "r(p) near contact",
+    "flow spread (px)",
 ];
 
 fn markdown_tables(rows: &[ResultRow], record: &RunRecord) -> String {
