@@ -391,10 +391,10 @@ mod tests {
         let section = CeilingSection {
             cnn: true,
             channels: 8,
-            steps: 160,
+            steps: 400,
             batch_size: 8,
-            lr: 5e-3,
-            validate_every: 40,
+            lr: 2e-3,
+            validate_every: 100,
             validation_period: 5,
         };
         let per = PAIR_CHANNELS * h * w;

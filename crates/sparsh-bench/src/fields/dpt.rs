@@ -344,6 +344,7 @@ impl FieldDecoder {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use sparsh_ssl::device::{seeded, seeded_module};
 
     #[test]
     fn hooks_follow_the_official_layout() {
@@ -358,17 +359,18 @@ mod tests {
     fn the_matrix_resize_is_the_bilinear_kernel() {
         let device = Device::flex().autodiff();
         for (from, to) in [([3, 2], [12, 9]), ([12, 9], [96, 72]), ([7, 5], [3, 4])] {
-            let x = Tensor::<4>::random(
-                [2, 3, from[0], from[1]],
-                burn::tensor::Distribution::Default,
-                &device,
-            )
-            .require_grad();
-            let r = Tensor::<4>::random(
-                [2, 3, to[0], to[1]],
-                burn::tensor::Distribution::Default,
-                &device,
-            );
+            // drawn under the seed's lock: burn's generator is global, shared with other tests
+            let (x, r) = seeded(&device, 1, || {
+                let draw = |shape: [usize; 2]| {
+                    Tensor::<4>::random(
+                        [2, 3, shape[0], shape[1]],
+                        burn::tensor::Distribution::Default,
+                        &device,
+                    )
+                };
+                (draw(from), draw(to))
+            });
+            let x = x.require_grad();
             let values_and_grad = |y: Tensor<4>| {
                 let v: Vec<f32> = y.clone().into_data().try_to_vec().unwrap();
                 let g = (y * r.clone()).sum().backward();
@@ -394,22 +396,27 @@ mod tests {
     fn decoder_outputs_bounded_maps_at_input_size() {
         let device = Device::flex();
         for skip in [false, true] {
-            let dec = FieldDecoderConfig::new(16, [12, 9], [96, 72])
-                .with_channels(8)
-                .with_max_flow_px(3.0)
-                .with_image_skip(skip)
-                .init(&device);
+            let dec = seeded_module(&device, 2, || {
+                FieldDecoderConfig::new(16, [12, 9], [96, 72])
+                    .with_channels(8)
+                    .with_max_flow_px(3.0)
+                    .with_image_skip(skip)
+                    .init(&device)
+            });
             assert_eq!(dec.image_skip.is_some(), skip);
-            let hooks = (0..4)
-                .map(|_| {
-                    Tensor::<3>::random([2, 108, 16], burn::tensor::Distribution::Default, &device)
-                })
-                .collect();
-            let input = Tensor::<4>::random(
-                [2, PAIR_CHANNELS, 96, 72],
-                burn::tensor::Distribution::Default,
-                &device,
-            );
+            let (hooks, input) = seeded(&device, 3, || {
+                let hooks: Vec<Tensor<3>> = (0..4)
+                    .map(|_| {
+                        let d = burn::tensor::Distribution::Default;
+                        Tensor::<3>::random([2, 108, 16], d, &device)
+                    })
+                    .collect();
+                let d = burn::tensor::Distribution::Default;
+                (
+                    hooks,
+                    Tensor::<4>::random([2, PAIR_CHANNELS, 96, 72], d, &device),
+                )
+            });
             let out = dec.forward(hooks, Some(input));
             assert_eq!(out.normal.dims(), [2, 1, 96, 72]);
             assert_eq!(out.flow.dims(), [2, 2, 96, 72]);
