@@ -319,26 +319,7 @@ pub fn predict_ceiling(
     let mut out = Vec::with_capacity(n);
     for chunk in rows.chunks(16) {
         let (normal, flow) = model.forward(tensor(input(chunk), chunk.len(), size, &device));
-        let [b, _, h, w] = normal.dims();
-        let normal: Vec<f32> = normal
-            .into_data()
-            .convert::<f32>()
-            .try_into_vec()
-            .expect("f32");
-        let flow: Vec<f32> = flow
-            .into_data()
-            .convert::<f32>()
-            .try_into_vec()
-            .expect("f32");
-        let n = h * w;
-        for i in 0..b {
-            let fx = &flow[(2 * i) * n..(2 * i + 1) * n];
-            let fy = &flow[(2 * i + 1) * n..(2 * i + 2) * n];
-            out.push(Prediction {
-                normal: normal[i * n..(i + 1) * n].to_vec(),
-                flow: fx.iter().zip(fy).map(|(&x, &y)| [x, y]).collect(),
-            });
-        }
+        out.extend(Prediction::of_batch(normal, flow));
     }
     out
 }

@@ -412,6 +412,28 @@ pub struct Prediction {
     pub flow: Vec<[f32; 2]>,
 }
 
+impl Prediction {
+    /// The predictions of a batch: `normal` `[b, 1, h, w]` and `flow` `[b, 2, h, w]`.
+    pub fn of_batch(normal: Tensor<4>, flow: Tensor<4>) -> Vec<Self> {
+        let [b, _, h, w] = normal.dims();
+        let values = |t: Tensor<4>| -> Vec<f32> {
+            t.into_data().convert::<f32>().try_into_vec().expect("f32")
+        };
+        let (normal, flow) = (values(normal), values(flow));
+        let n = h * w;
+        (0..b)
+            .map(|i| {
+                let fx = &flow[(2 * i) * n..(2 * i + 1) * n];
+                let fy = &flow[(2 * i + 1) * n..(2 * i + 2) * n];
+                Prediction {
+                    normal: normal[i * n..(i + 1) * n].to_vec(),
+                    flow: fx.iter().zip(fy).map(|(&x, &y)| [x, y]).collect(),
+                }
+            })
+            .collect()
+    }
+}
+
 /// Predictions for every row of `tokens`, computed on the device `model` lives on.
 pub fn predict(model: &FieldModel, tokens: &HookTokens) -> Vec<Prediction> {
     let device = sparsh_ssl::device::device_of(model).inner();
@@ -420,28 +442,7 @@ pub fn predict(model: &FieldModel, tokens: &HookTokens) -> Vec<Prediction> {
     for chunk in rows.chunks(16) {
         let (hooks, inputs) = tokens.batch(chunk, &model.decoder, &device);
         let y = model.decoder.forward(hooks, inputs);
-        let [b, _, h, w] = y.normal.dims();
-        let normal: Vec<f32> = y
-            .normal
-            .into_data()
-            .convert::<f32>()
-            .try_into_vec()
-            .expect("f32");
-        let flow: Vec<f32> = y
-            .flow
-            .into_data()
-            .convert::<f32>()
-            .try_into_vec()
-            .expect("f32");
-        for i in 0..b {
-            let n = h * w;
-            let fx = &flow[(2 * i) * n..(2 * i + 1) * n];
-            let fy = &flow[(2 * i + 1) * n..(2 * i + 2) * n];
-            out.push(Prediction {
-                normal: normal[i * n..(i + 1) * n].to_vec(),
-                flow: fx.iter().zip(fy).map(|(&x, &y)| [x, y]).collect(),
-            });
-        }
+        out.extend(Prediction::of_batch(y.normal, y.flow));
     }
     out
 }
