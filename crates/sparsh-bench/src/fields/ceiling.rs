@@ -14,7 +14,6 @@ use serde::{Deserialize, Serialize};
 use sparsh_ssl::device::seeded_module;
 use sparsh_ssl::rng::Rng;
 
-use super::data::{FramePairs, Pair};
 use super::dpt::{PAIR_CHANNELS, resize};
 use super::train::{Prediction, Targets};
 
@@ -165,22 +164,6 @@ pub struct CeilingRecord {
     pub best_step: usize,
     /// Wall time (s).
     pub seconds: f64,
-}
-
-/// The inputs `I_t ⊕ I_{t−k}` of the pairs `list` of `data`, for [`train_ceiling`] and
-/// [`predict_ceiling`]: the values of rows (`[PAIR_CHANNELS, h, w]` each, concatenated).
-pub fn pair_inputs<'a>(
-    data: &'a FramePairs,
-    list: &'a [Pair],
-) -> impl Fn(&[usize]) -> Vec<f32> + 'a {
-    move |rows| {
-        rows.iter()
-            .flat_map(|&i| {
-                let (now, before) = data.frames(list[i]);
-                now.iter().chain(before.iter()).copied()
-            })
-            .collect()
-    }
 }
 
 fn tensor(values: Vec<f32>, rows: usize, size: [usize; 2], device: &Device) -> Tensor<4> {

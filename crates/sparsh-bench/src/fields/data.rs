@@ -144,6 +144,17 @@ impl FramePairs {
         self.dataset.size
     }
 
+    /// The inputs `I_t ⊕ I_{t−k}` of `rows` of `list`, `[PAIR_CHANNELS, height, width]` each,
+    /// concatenated.
+    pub fn pair_inputs(&self, list: &[Pair], rows: &[usize]) -> Vec<f32> {
+        rows.iter()
+            .flat_map(|&i| {
+                let (now, before) = self.frames(list[i]);
+                now.iter().chain(before.iter()).copied()
+            })
+            .collect()
+    }
+
     /// Frames `t` and `t − offset` of a pair, `[3, height, width]` each.
     pub fn frames(&self, p: Pair) -> (&Frame, &Frame) {
         let seq = &self.dataset.sequences[p.sequence];

@@ -186,8 +186,8 @@ pub fn score_pair(
     truth: &PairTruth,
     width: usize,
     threshold: f32,
-) -> [Option<f64>; 12] {
-    let mut out = [None; 12];
+) -> [Option<f64>; METRICS.len()] {
+    let mut out = [None; METRICS.len()];
     let contact = truth.in_contact();
     if let Some(n) = normal.filter(|_| contact) {
         out[0] = pearson(n, &truth.pressure_kpa);

@@ -23,9 +23,7 @@ use sparsh_ssl::data::Stacking;
 use sparsh_ssl::recipe::Recipe;
 use sparsh_ssl::vit::Vit;
 
-use super::ceiling::{
-    CeilingRecord, CeilingSection, FieldCnn, pair_inputs, predict_ceiling, train_ceiling,
-};
+use super::ceiling::{CeilingRecord, CeilingSection, FieldCnn, predict_ceiling, train_ceiling};
 use super::data::{FramePairs, GroundTruth, Pair, PairTruth, marker_flow};
 use super::dpt::FieldDecoderConfig;
 use super::figures::{Panel, write_field_grid};
@@ -414,24 +412,22 @@ pub fn train_run(
     } else {
         None
     };
-    let kept = |name: &str, model: Option<bool>| {
-        earlier.as_ref().and_then(|run| {
-            let unchanged = settings(&run.config, model) == settings(&cfg, model);
-            let file_there = |file: &str| out.join("decoders").join(file).is_file();
-            match model {
-                Some(_) => run
-                    .decoders
-                    .iter()
-                    .find(|d| d.name == name && file_there(&d.file))
-                    .filter(|_| unchanged)
-                    .map(|d| (Some(d.clone()), None)),
-                None => run
-                    .ceiling
-                    .as_ref()
-                    .filter(|c| unchanged && file_there(&c.file))
-                    .map(|c| (None, Some(c.clone()))),
-            }
-        })
+    let file_there = |file: &str| out.join("decoders").join(file).is_file();
+    let unchanged = |run: &RunRecord, model| settings(&run.config, model) == settings(&cfg, model);
+    let kept_decoder = |name: &str, supervised: bool| {
+        earlier
+            .as_ref()
+            .filter(|run| unchanged(run, Some(supervised)))
+            .and_then(|run| run.decoders.iter().find(|d| d.name == name))
+            .filter(|d| file_there(&d.file))
+            .cloned()
+    };
+    let kept_ceiling = || {
+        earlier
+            .as_ref()
+            .filter(|run| unchanged(run, None))
+            .and_then(|run| run.ceiling.clone())
+            .filter(|c| file_there(&c.file))
     };
     let targets = if cfg.references.supervised || cfg.ceiling.cnn {
         let truth = GroundTruth::new(&pairs);
@@ -460,7 +456,7 @@ pub fn train_run(
     let mut pretrained_tokens: Option<HookTokens> = None;
     let mut records = Vec::new();
     for (name, random_seed, supervised) in plan {
-        if let Some((Some(record), _)) = kept(&name, Some(supervised)) {
+        if let Some(record) = kept_decoder(&name, supervised) {
             log(&format!("  {name}: kept from the earlier run"));
             records.push(record);
             continue;
@@ -516,12 +512,12 @@ pub fn train_run(
         });
     }
     let ceiling = match (&targets, cfg.ceiling.cnn) {
-        (Some(targets), true) => Some(match kept(CEILING, None) {
-            Some((_, Some(record))) => {
+        (Some(targets), true) => Some(match kept_ceiling() {
+            Some(record) => {
                 log(&format!("  {CEILING}: kept from the earlier run"));
                 record
             }
-            _ => {
+            None => {
                 let section = CeilingSection {
                     steps: if quick { 3 } else { cfg.ceiling.steps },
                     validate_every: if quick { 3 } else { cfg.ceiling.validate_every },
@@ -529,7 +525,7 @@ pub fn train_run(
                 };
                 let sequence: Vec<usize> = pairs.train.iter().map(|p| p.sequence).collect();
                 let (model, mut record) = train_ceiling(
-                    &pair_inputs(&pairs, &pairs.train),
+                    &|rows: &[usize]| pairs.pair_inputs(&pairs.train, rows),
                     pairs.size(),
                     &sequence,
                     targets,
@@ -599,7 +595,7 @@ pub fn read_run(run: &Path) -> Result<RunRecord, Error> {
 struct MethodScores {
     name: String,
     /// Per test pair, the metrics of [`METRICS`].
-    per_pair: Vec<[Option<f64>; 12]>,
+    per_pair: Vec<[Option<f64>; METRICS.len()]>,
 }
 
 /// One row of the results: a method's metric over a subset of test sequences.
@@ -624,7 +620,7 @@ pub struct ResultRow {
 /// Per-sequence means of metric `k`, from `rows` (indices into the test pairs).
 fn sequence_means(
     pairs: &[Pair],
-    scores: &[[Option<f64>; 12]],
+    scores: &[[Option<f64>; METRICS.len()]],
     k: usize,
     rows: &[usize],
 ) -> Vec<(usize, f64)> {
@@ -883,8 +879,10 @@ pub fn eval_run(
         .try_load_file(&path)
         .map_err(|e| Error::file(&path, format!("{e:?}")))?;
         let model = sparsh_ssl::device::on_device(model, device);
-        let predict =
-            |list: &[Pair]| predict_ceiling(&model, &pair_inputs(&pairs, list), [h, w], list.len());
+        let predict = |list: &[Pair]| {
+            let input = |rows: &[usize]| pairs.pair_inputs(list, rows);
+            predict_ceiling(&model, &input, [h, w], list.len())
+        };
         let train_maps: Vec<Vec<f32>> = predict(&pairs.train)
             .into_iter()
             .map(|p| p.normal)
@@ -1054,7 +1052,7 @@ fn write_csv(path: &Path, rows: &[ResultRow]) -> Result<(), Error> {
 }
 
 /// Column headings of the tables, in [`METRICS`] order.
-const HEADINGS: [&str; 12] = [
+const HEADINGS: [&str; METRICS.len()] = [
     "r(p)",
     "ρ(p)",
     "r(−u_z)",

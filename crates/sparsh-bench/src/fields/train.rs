@@ -114,13 +114,7 @@ impl HookTokens {
 /// ([`hook_blocks`]).
 pub fn encode_hooks(vit: &Vit, data: &FramePairs, pairs: &[Pair], device: &Device) -> HookTokens {
     encode_inputs(vit, data.size(), pairs.len(), device, |rows| {
-        pairs[rows]
-            .iter()
-            .flat_map(|&p| {
-                let (now, before) = data.frames(p);
-                now.iter().chain(before.iter()).copied()
-            })
-            .collect()
+        data.pair_inputs(pairs, &rows.collect::<Vec<_>>())
     })
 }
 
@@ -366,7 +360,15 @@ pub fn train(
                             || data.sequences[pairs[rows[k]].sequence].has_markers()
                     })
                     .collect();
-                if sheared.is_empty() {
+                if sheared.len() == rows.len() {
+                    normal
+                        + shear_loss(
+                            out.flow,
+                            now,
+                            frames(data, pairs, &rows, true),
+                            &opts.weights,
+                        )
+                } else if sheared.is_empty() {
                     normal
                 } else {
                     let picked: Vec<usize> = sheared.iter().map(|&k| rows[k]).collect();
