@@ -12,8 +12,10 @@
 //! `frames` equal steps (default 20), fields on the 320 × 240 grid: seconds and Newton iterations
 //! per frame with and without warm start, against the layered rung on the same frames, and on
 //! stderr where the time went (factorisations, preconditioned CG iterations, multiplier updates,
-//! the share of assembly, factorisation, solves and line searches), and warm with the consistent
-//! slip tangent alone (no secant step after a shortened one) as the baseline; `fem [frames] warm`:
+//! the share of assembly, factorisation, solves and line searches), and warm with each solve
+//! starting from the last one's friction bounds, with the kept factor tried however many
+//! surface nodes changed state, or with the consistent slip tangent alone (no secant step after
+//! a shortened one), as baselines; `fem [frames] warm`:
 //! warm start only; `fem [frames] [warm|both] [friction]`: the same press at another friction
 //! coefficient (μ = 0: the frictionless press the layered rung's coupling is measured against).
 use std::alloc::{GlobalAlloc, Layout, System};
@@ -317,6 +319,20 @@ fn deep_press(frames: usize, warm_only: bool, friction: f64) {
     ));
     let variants = [
         ("fem, warm start", FemOptions::default()),
+        (
+            "fem, warm start, each solve from the last one's friction bounds",
+            FemOptions {
+                predict_bounds: false,
+                ..FemOptions::default()
+            },
+        ),
+        (
+            "fem, warm start, always trying the kept factor first",
+            FemOptions {
+                max_changed_nodes: usize::MAX,
+                ..FemOptions::default()
+            },
+        ),
         (
             "fem, warm start, consistent slip tangent only",
             FemOptions {

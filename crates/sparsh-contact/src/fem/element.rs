@@ -104,8 +104,8 @@ pub struct ElementState {
     pub energy: f64,
     /// ∂W/∂u, `[a * 3 + i]`.
     pub gradient: [f64; 24],
-    /// ∂²W/∂u∂u, `[(a * 3 + i) * 24 + b * 3 + k]` (filled only when asked).
-    pub hessian: Vec<f64>,
+    /// ∂²W/∂u∂u, `[(a * 3 + i) * 24 + b * 3 + k]` (filled only when asked, else zero).
+    pub hessian: [f64; 576],
 }
 
 /// Deformation gradients F = I + Σ_a u_a ⊗ ∇N_a at the Gauss points.
@@ -172,11 +172,7 @@ pub fn evaluate(
     let mut gradient = [0.0; 24];
     // ∂v_e/∂u_ai = Σ_g w J G_iJ ∇N_aJ.
     let mut dv = [0.0; 24];
-    let mut hessian = if with_hessian {
-        vec![0.0; 576]
-    } else {
-        Vec::new()
-    };
+    let mut hessian = [0.0; 576];
     for g in 0..8 {
         let (f, gi, j) = (&fs[g], &gs[g], js[g]);
         let grad = &b.grad[g];
@@ -208,45 +204,45 @@ pub fn evaluate(
         }
         // A_iJkL = ∂P_iJ/∂F_kL of the isochoric part, plus U'(θ) ∂(J F⁻ᵀ)_iJ/∂F_kL:
         // c[δ_ik δ_JL − ⅔ F_iJ G_kL − ⅔ G_iJ F_kL + (2/9) I₁ G_iJ G_kL + ⅓ I₁ G_iL G_kJ]
-        // + U' J (G_iJ G_kL − G_iL G_kJ), with G = F⁻ᵀ.
-        let mut tangent = [[0.0; 9]; 9];
-        for i in 0..3 {
-            for jj in 0..3 {
-                for k in 0..3 {
-                    for l in 0..3 {
-                        let delta = if i == k && jj == l { 1.0 } else { 0.0 };
-                        let iso = c
-                            * (delta
-                                - 2.0 / 3.0 * f[i][jj] * gi[k][l]
-                                - 2.0 / 3.0 * gi[i][jj] * f[k][l]
-                                + 2.0 / 9.0 * i1 * gi[i][jj] * gi[k][l]
-                                + i1 / 3.0 * gi[i][l] * gi[k][jj]);
-                        let vol = du * j * (gi[i][jj] * gi[k][l] - gi[i][l] * gi[k][jj]);
-                        tangent[i * 3 + jj][k * 3 + l] = iso + vol;
-                    }
+        // + U' J (G_iJ G_kL − G_iL G_kJ), with G = F⁻ᵀ. Contracted with the shape-function
+        // gradients, K[ai][bk] = Σ_JL ∇N_aJ A_iJkL ∇N_bL, every term is an outer product of the
+        // vectors f_a = F ∇N_a and g_a = G ∇N_a:
+        // K_ab = c (∇N_a·∇N_b) I − ⅔c (f_a g_bᵀ + g_a f_bᵀ) + ((2/9) c I₁ + U'J) g_a g_bᵀ
+        //        + (⅓ c I₁ − U'J) g_b g_aᵀ.
+        let gamma = -2.0 / 3.0 * c;
+        let alpha = 2.0 / 9.0 * c * i1 + du * j;
+        let beta = c * i1 / 3.0 - du * j;
+        let mut fa = [[0.0; 3]; 8];
+        let mut ga = [[0.0; 3]; 8];
+        let mut pa = [[0.0; 3]; 8];
+        for a in 0..8 {
+            for i in 0..3 {
+                let (mut sf, mut sg) = (0.0, 0.0);
+                for jj in 0..3 {
+                    sf += f[i][jj] * grad[a][jj];
+                    sg += gi[i][jj] * grad[a][jj];
                 }
+                fa[a][i] = sf;
+                ga[a][i] = sg;
+                pa[a][i] = gamma * sf + alpha * sg;
             }
         }
-        // T[a][i][k][L] = Σ_J ∇N_aJ A_iJkL; K[ai][bk] += w Σ_L T[a][i][k][L] ∇N_bL.
+        // The lower blocks only (b ≤ a); the tangent's major symmetry gives the rest.
         for a in 0..8 {
-            let mut t = [[[0.0; 3]; 3]; 3];
-            for i in 0..3 {
-                for k in 0..3 {
-                    for l in 0..3 {
-                        let mut s = 0.0;
-                        for jj in 0..3 {
-                            s += grad[a][jj] * tangent[i * 3 + jj][k * 3 + l];
-                        }
-                        t[i][k][l] = s;
-                    }
-                }
-            }
-            // The lower blocks only (b ≤ a); the tangent's major symmetry gives the rest.
             for bb in 0..=a {
+                let dot =
+                    grad[a][0] * grad[bb][0] + grad[a][1] * grad[bb][1] + grad[a][2] * grad[bb][2];
                 for i in 0..3 {
+                    let row =
+                        &mut hessian[(a * 3 + i) * 24 + bb * 3..(a * 3 + i) * 24 + bb * 3 + 3];
                     for k in 0..3 {
-                        let s: f64 = (0..3).map(|l| t[i][k][l] * grad[bb][l]).sum();
-                        hessian[(a * 3 + i) * 24 + bb * 3 + k] += w * s;
+                        let mut s = pa[a][i] * ga[bb][k]
+                            + gamma * ga[a][i] * fa[bb][k]
+                            + beta * ga[bb][i] * ga[a][k];
+                        if i == k {
+                            s += c * dot;
+                        }
+                        row[k] += w * s;
                     }
                 }
             }
