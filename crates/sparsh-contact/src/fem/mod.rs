@@ -13,7 +13,8 @@
 //!   *Computational Contact Mechanics*, ch. 6), Coulomb friction by a penalty-regularised
 //!   return map on the increment since the previous frame (the path history), with the friction
 //!   bound μp fixed over each Newton solve and updated with the multipliers (Laursen & Simo
-//!   1993).
+//!   1993), and once before a frame's first solve from the pressure its starting displacement
+//!   predicts, so that nodes the indenter newly reaches do not enter that solve frictionless.
 //! - **Solution**: for fixed multipliers the problem is the minimum of a potential (strain
 //!   energy + contact + friction), solved by Newton with an Armijo backtracking line search on
 //!   that potential (inverted elements count as infinite energy, so a step never inverts one),
@@ -22,8 +23,9 @@
 //!   the Hessian is factorised by faer's sparse supernodal Cholesky in a nested-dissection order
 //!   of the mesh, its symbolic analysis reused across iterations and frames, single-threaded so
 //!   the answer does not depend on the thread count. The last factor preconditions conjugate
-//!   gradients on later Newton systems (a modified Newton), and a fresh one is made only when
-//!   those stop converging fast. A Hessian that is not positive definite (buckling, strong
+//!   gradients on later Newton systems (a modified Newton), and a fresh one is made when those
+//!   stop converging fast, or straight away when many surface nodes changed their contact or
+//!   friction state since it was made. A Hessian that is not positive definite (buckling, strong
 //!   compression) is shifted (Levenberg) until it is.
 //! - **Fields**: displacement, pressure and traction interpolated from the surface nodes onto the
 //!   sensor grid at the material point that sits above each cell after deformation (Eulerian
