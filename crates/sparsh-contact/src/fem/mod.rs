@@ -637,7 +637,9 @@ impl Fem {
     /// The Newton step H s = −g: conjugate gradients preconditioned by the last factor while it
     /// converges within [`PCG_ITERATIONS`] to a relative residual of [`PCG_TOLERANCE`] (a
     /// modified Newton that refactorises only when the Hessian has moved: across multiplier
-    /// updates and warm-started frames it changes little), else a fresh factorisation.
+    /// updates and warm-started frames it changes little), else a fresh factorisation — made
+    /// without trying the conjugate gradients when [`FemOptions::max_changed_nodes`] or more
+    /// surface nodes changed their contact or friction state since the kept factor was made.
     fn newton_step(&mut self, st: &mut State, a: &Assembled) -> Vec<f64> {
         let mut step: Vec<f64> = a.gradient.iter().map(|g| -g).collect();
         let changed = st
