@@ -16,7 +16,8 @@
 //! starting from the last one's friction bounds, with the kept factor tried however many
 //! surface nodes changed state, or with the consistent slip tangent alone (no secant step after
 //! a shortened one), as baselines; `fem [frames] warm`:
-//! warm start only; `fem [frames] [warm|both] [friction]`: the same press at another friction
+//! warm start only; `fem [frames] default`: the default rung alone beside the layered one;
+//! `fem [frames] [warm|default|both] [friction]`: the same press at another friction
 //! coefficient (μ = 0: the frictionless press the layered rung's coupling is measured against).
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -107,11 +108,12 @@ fn main() {
         let friction = args
             .get(4)
             .map_or(DIGIT_GEL.friction, |f| f.parse().expect("friction"));
-        deep_press(
-            frames,
-            args.get(3).map(String::as_str) == Some("warm"),
-            friction,
-        );
+        let variants = match args.get(3).map(String::as_str) {
+            Some("warm") => FemVariants::Warm,
+            Some("default") => FemVariants::Default,
+            _ => FemVariants::All,
+        };
+        deep_press(frames, variants, friction);
         return;
     }
     let kind = match args.get(1).map(String::as_str) {
@@ -282,8 +284,19 @@ unsafe impl GlobalAlloc for CountingAllocator {
 #[global_allocator]
 static GLOBAL: CountingAllocator = CountingAllocator;
 
+/// Which finite-element variants the deep press runs.
+#[derive(Clone, Copy, PartialEq)]
+enum FemVariants {
+    /// The default rung alone.
+    Default,
+    /// Every warm-started variant.
+    Warm,
+    /// Every variant, from rest too.
+    All,
+}
+
 /// The deep-press benchmark of the finite-element rung (see the module comment).
-fn deep_press(frames: usize, warm_only: bool, friction: f64) {
+fn deep_press(frames: usize, variants: FemVariants, friction: f64) {
     let grid = DIGIT_GRID;
     let gel = Gel {
         friction,
@@ -317,7 +330,7 @@ fn deep_press(frames: usize, warm_only: bool, friction: f64) {
         0.0,
         force,
     ));
-    let variants = [
+    let fem_variants = [
         ("fem, warm start", FemOptions::default()),
         (
             "fem, warm start, each solve from the last one's friction bounds",
@@ -348,8 +361,13 @@ fn deep_press(frames: usize, warm_only: bool, friction: f64) {
             },
         ),
     ];
-    for (label, options) in variants {
-        if warm_only && !options.warm_start {
+    for (label, options) in fem_variants {
+        let skip = match variants {
+            FemVariants::Default => options != FemOptions::default(),
+            FemVariants::Warm => !options.warm_start,
+            FemVariants::All => false,
+        };
+        if skip {
             continue;
         }
         let mut fem = Fem::new(gel, grid).with_options(options);

@@ -98,14 +98,85 @@ impl Box8 {
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Inverted;
 
+/// Entries of a 24 × 24 symmetric matrix's lower triangle.
+pub const PACKED: usize = 24 * 25 / 2;
+
+/// Where entry (r, c) of a symmetric 24 × 24 matrix sits in its lower triangle packed by rows.
+pub fn packed(r: usize, c: usize) -> usize {
+    let (r, c) = if r >= c { (r, c) } else { (c, r) };
+    r * (r + 1) / 2 + c
+}
+
+/// For each packed lower-triangle entry (a * 3 + i, b * 3 + k), where the entry
+/// (a * 3 + k, b * 3 + i) of a symmetric matrix sits: its 3 × 3 blocks transposed.
+const BLOCK_TRANSPOSED: [u16; PACKED] = {
+    let mut table = [0u16; PACKED];
+    let mut r = 0;
+    while r < 24 {
+        let mut c = 0;
+        while c <= r {
+            let (a, i, bb, k) = (r / 3, r % 3, c / 3, c % 3);
+            let (r2, c2) = (a * 3 + k, bb * 3 + i);
+            let (hi, lo) = if r2 >= c2 { (r2, c2) } else { (c2, r2) };
+            table[r * (r + 1) / 2 + c] = (hi * (hi + 1) / 2 + lo) as u16;
+            c += 1;
+        }
+        r += 1;
+    }
+    table
+};
+
 /// Energy (kPa·mm³ = μJ), gradient (mN) and Hessian (mN/mm) of one element.
+#[derive(Debug, Clone)]
 pub struct ElementState {
     /// Stored energy.
     pub energy: f64,
     /// ∂W/∂u, `[a * 3 + i]`.
     pub gradient: [f64; 24],
-    /// ∂²W/∂u∂u, `[(a * 3 + i) * 24 + b * 3 + k]` (filled only when asked, else zero).
-    pub hessian: [f64; 576],
+    /// ∂²W/∂u∂u, its lower triangle packed by rows (entry (a * 3 + i, b * 3 + k) at
+    /// [`packed`]); left as it was when not asked for.
+    pub hessian: [f64; PACKED],
+}
+
+impl Default for ElementState {
+    fn default() -> Self {
+        ElementState {
+            energy: 0.0,
+            gradient: [0.0; 24],
+            hessian: [0.0; PACKED],
+        }
+    }
+}
+
+/// The lower triangle of Σ_q l[·][q] ⊗ rt[q] (two 24 × Q factors), packed by rows into `out`:
+/// in three bands of eight rows, each row summed in registers over the columns its band needs.
+#[inline(always)]
+fn outer_lower<const Q: usize>(l: &[[f64; Q]; 24], rt: &[[f64; 24]; Q], out: &mut [f64; PACKED]) {
+    outer_band::<Q, 8>(l, rt, 0, out);
+    outer_band::<Q, 16>(l, rt, 8, out);
+    outer_band::<Q, 24>(l, rt, 16, out);
+}
+
+/// Rows `first..first + 8` of [`outer_lower`], W = first + 8 columns wide.
+#[inline(always)]
+fn outer_band<const Q: usize, const W: usize>(
+    l: &[[f64; Q]; 24],
+    rt: &[[f64; 24]; Q],
+    first: usize,
+    out: &mut [f64; PACKED],
+) {
+    for (r, l_r) in l.iter().enumerate().skip(first).take(8) {
+        let mut acc = [0.0; W];
+        for (&x, row) in l_r.iter().zip(rt) {
+            for (a, &y) in acc.iter_mut().zip(&row[..W]) {
+                *a += x * y;
+            }
+        }
+        // All W entries, a fixed-size copy: those past the row's r + 1 land on the next rows'
+        // first entries, which those rows overwrite (the last row of each band is W wide).
+        let start = r * (r + 1) / 2;
+        out[start..start + W].copy_from_slice(&acc);
+    }
 }
 
 /// Deformation gradients F = I + Σ_a u_a ⊗ ∇N_a at the Gauss points.
@@ -143,13 +214,54 @@ pub fn energy(m: &NeoHookean, b: &Box8, u: &[[f64; 3]; 8]) -> Result<f64, Invert
     Ok(iso + b.volume_mm3 * 0.5 * m.bulk_kpa * (theta - 1.0).powi(2))
 }
 
-/// Energy, gradient and (when `with_hessian`) Hessian of one element, or [`Inverted`].
-pub fn evaluate(
+/// Energy, gradient and (when `with_hessian`) Hessian of one element into `out`, or
+/// [`Inverted`].
+///
+/// The Hessian is the sum over Gauss points of the isochoric tangent contracted with the
+/// shape-function gradients, written as outer products of 24-vectors (see [`outer_lower`]),
+/// with f_a = F ∇N_a, g_a = F⁻ᵀ ∇N_a:
+/// K_ab = c (∇N_a·∇N_b) I − ⅔c (f_a g_bᵀ + g_a f_bᵀ) + ((2/9) c I₁ + U'J) g_a g_bᵀ
+///        + (⅓ c I₁ − U'J) g_b g_aᵀ, c = μ J^(−2/3),
+/// plus the mean dilatation's rank-one term U''(θ)/V_e ∂v_e/∂u ⊗ ∂v_e/∂u.
+pub fn evaluate_into(
     m: &NeoHookean,
     b: &Box8,
     u: &[[f64; 3]; 8],
     with_hessian: bool,
-) -> Result<ElementState, Inverted> {
+    out: &mut ElementState,
+) -> Result<(), Inverted> {
+    #[cfg(target_arch = "x86_64")]
+    if std::is_x86_feature_detected!("avx2") {
+        // SAFETY: the CPU has just been found to have AVX2.
+        return unsafe { evaluate_avx2(m, b, u, with_hessian, out) };
+    }
+    evaluate_portable(m, b, u, with_hessian, out)
+}
+
+/// [`evaluate_portable`] compiled for AVX2 (its outer products four lanes wide instead of two;
+/// 1.26× faster on the deep press's elements). AVX2 without FMA: no multiply and add is fused,
+/// so the result is the portable one to the bit.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn evaluate_avx2(
+    m: &NeoHookean,
+    b: &Box8,
+    u: &[[f64; 3]; 8],
+    with_hessian: bool,
+    out: &mut ElementState,
+) -> Result<(), Inverted> {
+    evaluate_portable(m, b, u, with_hessian, out)
+}
+
+/// [`evaluate_into`] for any CPU; inlined into [`evaluate_avx2`] to be compiled again there.
+#[inline(always)]
+fn evaluate_portable(
+    m: &NeoHookean,
+    b: &Box8,
+    u: &[[f64; 3]; 8],
+    with_hessian: bool,
+    out: &mut ElementState,
+) -> Result<(), Inverted> {
     let w = b.volume_mm3 / 8.0;
     let fs = deformation(b, u);
     let mut js = [0.0; 8];
@@ -172,111 +284,135 @@ pub fn evaluate(
     let mut gradient = [0.0; 24];
     // ∂v_e/∂u_ai = Σ_g w J G_iJ ∇N_aJ.
     let mut dv = [0.0; 24];
-    let mut hessian = [0.0; 576];
+    // Per Gauss point, the 24-vectors the Hessian is made of: `left` = [w(γ f + α g), wγ g,
+    // wβ g] and `right` = [g, f] (γ = −⅔c, α = (2/9) c I₁ + U'J, β = ⅓ c I₁ − U'J), and
+    // the weight w c of the ∇N_a·∇N_b term.
+    let mut left_k = [[0.0; 16]; 24];
+    let mut left_m = [[0.0; 8]; 24];
+    let mut right_k = [[0.0; 24]; 16];
+    let mut right_m = [[0.0; 24]; 8];
+    let mut laplace_weight = [0.0; 8];
     for g in 0..8 {
         let (f, gi, j) = (&fs[g], &gs[g], js[g]);
         let grad = &b.grad[g];
         let i1: f64 = f.iter().flatten().map(|x| x * x).sum();
-        let jm23 = j.powf(-2.0 / 3.0);
-        let c = m.shear_kpa * jm23;
-        energy += w * 0.5 * m.shear_kpa * (jm23 * i1 - 3.0);
-        // P_iso = μ J^(−2/3) (F − I₁/3 F⁻ᵀ).
-        let mut p = [[0.0; 3]; 3];
-        for i in 0..3 {
-            for jj in 0..3 {
-                p[i][jj] = c * (f[i][jj] - i1 / 3.0 * gi[i][jj]);
-            }
-        }
-        for a in 0..8 {
-            for i in 0..3 {
-                let mut s = 0.0;
-                let mut sv = 0.0;
-                for jj in 0..3 {
-                    s += p[i][jj] * grad[a][jj];
-                    sv += j * gi[i][jj] * grad[a][jj];
-                }
-                gradient[a * 3 + i] += w * s;
-                dv[a * 3 + i] += w * sv;
-            }
-        }
-        if !with_hessian {
-            continue;
-        }
-        // A_iJkL = ∂P_iJ/∂F_kL of the isochoric part, plus U'(θ) ∂(J F⁻ᵀ)_iJ/∂F_kL:
-        // c[δ_ik δ_JL − ⅔ F_iJ G_kL − ⅔ G_iJ F_kL + (2/9) I₁ G_iJ G_kL + ⅓ I₁ G_iL G_kJ]
-        // + U' J (G_iJ G_kL − G_iL G_kJ), with G = F⁻ᵀ. Contracted with the shape-function
-        // gradients, K[ai][bk] = Σ_JL ∇N_aJ A_iJkL ∇N_bL, every term is an outer product of the
-        // vectors f_a = F ∇N_a and g_a = G ∇N_a:
-        // K_ab = c (∇N_a·∇N_b) I − ⅔c (f_a g_bᵀ + g_a f_bᵀ) + ((2/9) c I₁ + U'J) g_a g_bᵀ
-        //        + (⅓ c I₁ − U'J) g_b g_aᵀ.
+        let c = m.shear_kpa * j.powf(-2.0 / 3.0);
+        energy += w * 0.5 * (c * i1 - 3.0 * m.shear_kpa);
         let gamma = -2.0 / 3.0 * c;
         let alpha = 2.0 / 9.0 * c * i1 + du * j;
         let beta = c * i1 / 3.0 - du * j;
-        let mut fa = [[0.0; 3]; 8];
-        let mut ga = [[0.0; 3]; 8];
-        let mut pa = [[0.0; 3]; 8];
-        for a in 0..8 {
+        laplace_weight[g] = w * c;
+        for (a, grad_a) in grad.iter().enumerate() {
             for i in 0..3 {
                 let (mut sf, mut sg) = (0.0, 0.0);
                 for jj in 0..3 {
-                    sf += f[i][jj] * grad[a][jj];
-                    sg += gi[i][jj] * grad[a][jj];
+                    sf += f[i][jj] * grad_a[jj];
+                    sg += gi[i][jj] * grad_a[jj];
                 }
-                fa[a][i] = sf;
-                ga[a][i] = sg;
-                pa[a][i] = gamma * sf + alpha * sg;
-            }
-        }
-        // The lower blocks only (b ≤ a); the tangent's major symmetry gives the rest.
-        for a in 0..8 {
-            for bb in 0..=a {
-                let dot =
-                    grad[a][0] * grad[bb][0] + grad[a][1] * grad[bb][1] + grad[a][2] * grad[bb][2];
-                for i in 0..3 {
-                    let row =
-                        &mut hessian[(a * 3 + i) * 24 + bb * 3..(a * 3 + i) * 24 + bb * 3 + 3];
-                    for k in 0..3 {
-                        let mut s = pa[a][i] * ga[bb][k]
-                            + gamma * ga[a][i] * fa[bb][k]
-                            + beta * ga[bb][i] * ga[a][k];
-                        if i == k {
-                            s += c * dot;
-                        }
-                        row[k] += w * s;
-                    }
-                }
+                let r = a * 3 + i;
+                // P_iso = μ J^(−2/3) (F − I₁/3 F⁻ᵀ), so P_iso ∇N_a = c (f_a − I₁/3 g_a).
+                gradient[r] += w * c * (sf - i1 / 3.0 * sg);
+                dv[r] += w * j * sg;
+                left_k[r][2 * g] = w * (gamma * sf + alpha * sg);
+                left_k[r][2 * g + 1] = w * gamma * sg;
+                left_m[r][g] = w * beta * sg;
+                right_k[2 * g][r] = sg;
+                right_k[2 * g + 1][r] = sf;
+                right_m[g][r] = sg;
             }
         }
     }
     for (gr, d) in gradient.iter_mut().zip(&dv) {
         *gr += du * d;
     }
-    if with_hessian {
-        // The mean dilatation's rank-one term U''(θ)/V_e ∂v_e/∂u ⊗ ∂v_e/∂u.
-        let s = ddu / b.volume_mm3;
-        for r in 0..24 {
-            for c in 0..r / 3 * 3 + 3 {
-                hessian[r * 24 + c] += s * dv[r] * dv[c];
+    out.energy = energy;
+    out.gradient = gradient;
+    if !with_hessian {
+        return Ok(());
+    }
+    let hessian = &mut out.hessian;
+    // The first two outer products into K and the third into M = Σ wβ g gᵀ.
+    let mut swapped = [0.0; PACKED];
+    outer_lower(&left_k, &right_k, hessian);
+    outer_lower(&left_m, &right_m, &mut swapped);
+    // β g_b g_aᵀ is block (a, b) of M transposed: K[(a, i), (b, k)] += M[(a, k), (b, i)].
+    for (k, &from) in hessian.iter_mut().zip(BLOCK_TRANSPOSED.iter()) {
+        *k += swapped[from as usize];
+    }
+    // c (∇N_a·∇N_b) I.
+    for a in 0..8 {
+        for bb in 0..=a {
+            let mut laplace = 0.0;
+            for (grad, weight) in b.grad.iter().zip(&laplace_weight) {
+                laplace += weight
+                    * (grad[a][0] * grad[bb][0]
+                        + grad[a][1] * grad[bb][1]
+                        + grad[a][2] * grad[bb][2]);
             }
-        }
-        // Mirror the lower blocks: the Hessian is symmetric (A_iJkL = A_kLiJ). Within a diagonal
-        // block both triangles were computed.
-        for r in 0..24 {
-            for c in r / 3 * 3 + 3..24 {
-                hessian[r * 24 + c] = hessian[c * 24 + r];
+            for i in 0..3 {
+                hessian[packed(a * 3 + i, bb * 3 + i)] += laplace;
             }
         }
     }
-    Ok(ElementState {
-        energy,
-        gradient,
-        hessian,
-    })
+    // The mean dilatation's rank-one term.
+    let s = ddu / b.volume_mm3;
+    for r in 0..24 {
+        let row = &mut hessian[r * (r + 1) / 2..r * (r + 1) / 2 + r + 1];
+        let sr = s * dv[r];
+        for (k, &dc) in row.iter_mut().zip(&dv[..=r]) {
+            *k += sr * dc;
+        }
+    }
+    Ok(())
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn evaluate(
+        m: &NeoHookean,
+        b: &Box8,
+        u: &[[f64; 3]; 8],
+        with_hessian: bool,
+    ) -> Result<ElementState, Inverted> {
+        let mut out = ElementState::default();
+        evaluate_into(m, b, u, with_hessian, &mut out)?;
+        Ok(out)
+    }
+
+    /// The AVX2 build of the element and the portable one must agree to the bit, or frames
+    /// would depend on the CPU: neither contracts a multiply and an add, and both sum in the
+    /// same order.
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn the_avx2_element_equals_the_portable_one_to_the_bit() {
+        if !std::is_x86_feature_detected!("avx2") {
+            return;
+        }
+        let m = material();
+        for (scale, size) in [(1.0, [1.0, 0.7, 0.5]), (0.1, [0.3, 0.3, 0.33])] {
+            let b = Box8::new(size);
+            let u = deformed(scale);
+            let (mut fast, mut portable) = (ElementState::default(), ElementState::default());
+            // SAFETY: the CPU has AVX2 (checked above).
+            unsafe { evaluate_avx2(&m, &b, &u, true, &mut fast) }.unwrap();
+            evaluate_portable(&m, &b, &u, true, &mut portable).unwrap();
+            assert_eq!(fast.energy.to_bits(), portable.energy.to_bits());
+            assert!(
+                fast.gradient
+                    .iter()
+                    .zip(&portable.gradient)
+                    .all(|(a, b)| a.to_bits() == b.to_bits())
+            );
+            assert!(
+                fast.hessian
+                    .iter()
+                    .zip(&portable.hessian)
+                    .all(|(a, b)| a.to_bits() == b.to_bits())
+            );
+        }
+    }
 
     fn material() -> NeoHookean {
         NeoHookean::from_young(300.0, 0.45)
@@ -315,7 +451,7 @@ mod tests {
             let gm = evaluate(&m, &b, &um, false).unwrap().gradient;
             for c in 0..24 {
                 let fd = (gp[c] - gm[c]) / (2.0 * h);
-                let an = s.hessian[c * 24 + r];
+                let an = s.hessian[packed(c, r)];
                 assert!(
                     (fd - an).abs() < 1e-4 * (1.0 + an.abs()),
                     "hessian {c},{r}: {fd} vs {an}"

@@ -49,7 +49,7 @@ use rayon::prelude::*;
 use sparsh_scene::{Gel, Grid};
 
 pub use element::NeoHookean;
-use element::{Box8, evaluate};
+use element::{Box8, ElementState, PACKED, evaluate_into, packed};
 use mesh::{Mesh, graded_axis, graded_depth, locate};
 
 use crate::{ContactError, ContactInput, ContactSolver, Fields, NormalControl};
@@ -172,9 +172,10 @@ struct System {
     col_ptr: Vec<usize>,
     row_idx: Vec<usize>,
     symbolic: Arc<SymbolicCholesky<usize>>,
-    /// Per element, per (row, column) pair of its local dofs: the position in `row_idx`, or
-    /// `usize::MAX` when the pair is above the diagonal or involves a fixed dof.
-    scatter: Vec<[u32; 576]>,
+    /// Per element, per entry of its Hessian's packed lower triangle (see [`packed`]): the
+    /// position in `row_idx` of the global pair it adds to, or `u32::MAX` when the pair involves
+    /// a fixed dof.
+    scatter: Vec<[u32; PACKED]>,
 }
 
 /// Solution and path history on one mesh.
@@ -287,9 +288,6 @@ struct Assembled {
     /// Each surface node's contact and friction state (which Hessian block it contributed).
     node_states: Vec<NodeState>,
 }
-
-/// One element's index, energy terms and nodes.
-type Evaluated = (usize, element::ElementState, [usize; 8]);
 
 /// What failed inside a solve.
 enum Failure {
@@ -431,10 +429,16 @@ impl Fem {
         let (ex, ey) = (nx - 1, ny - 1);
         let n_el = mesh.elements();
         const CHUNK: usize = 2048;
+        // Elements are evaluated in parallel into `terms`, then added in element order, so the
+        // sums do not depend on the thread count.
+        let mut terms = vec![ElementState::default(); CHUNK.min(n_el)];
         for start in (0..n_el).step_by(CHUNK) {
-            let results: Vec<Result<Evaluated, Failure>> = (start..(start + CHUNK).min(n_el))
-                .into_par_iter()
-                .map(|e| {
+            let chunk = &mut terms[..(start + CHUNK).min(n_el) - start];
+            chunk
+                .par_iter_mut()
+                .enumerate()
+                .try_for_each(|(offset, out)| {
+                    let e = start + offset;
                     let (i, j, k) = (e % ex, (e / ex) % ey, e / (ex * ey));
                     let nodes = mesh.element_nodes(i, j, k);
                     let b = Box8::new(mesh.element_size(i, j, k));
@@ -442,15 +446,14 @@ impl Fem {
                     for (a, &n) in nodes.iter().enumerate() {
                         ue[a].copy_from_slice(&u[3 * n..3 * n + 3]);
                     }
-                    let s = evaluate(&self.material, &b, &ue, hessian.is_some())
-                        .map_err(|_| Failure::Inverted)?;
-                    Ok((e, s, nodes))
-                })
-                .collect();
-            for r in results {
-                let (e, s, nodes) = r?;
+                    evaluate_into(&self.material, &b, &ue, hessian.is_some(), out)
+                        .map_err(|_| Failure::Inverted)
+                })?;
+            for (offset, s) in chunk.iter().enumerate() {
+                let e = start + offset;
+                let (i, j, k) = (e % ex, (e / ex) % ey, e / (ex * ey));
                 energy += s.energy;
-                for (a, &n) in nodes.iter().enumerate() {
+                for (a, &n) in mesh.element_nodes(i, j, k).iter().enumerate() {
                     if 3 * n < nfree {
                         for c in 0..3 {
                             gradient[3 * n + c] += s.gradient[a * 3 + c];
@@ -458,10 +461,9 @@ impl Fem {
                     }
                 }
                 if hessian.is_some() {
-                    let map = &sys.scatter[e];
-                    for (pos, &slot) in map.iter().enumerate() {
+                    for (&slot, &h) in sys.scatter[e].iter().zip(&s.hessian) {
                         if slot != u32::MAX {
-                            values[slot as usize] += s.hessian[pos];
+                            values[slot as usize] += h;
                         }
                     }
                 }
@@ -1009,18 +1011,19 @@ fn build_system(mesh: &Mesh) -> System {
         .map(|e| {
             let (i, j, k) = (e % ex, (e / ex) % ey, e / (ex * ey));
             let nodes = mesh.element_nodes(i, j, k);
-            let mut map = [u32::MAX; 576];
+            let mut map = [u32::MAX; PACKED];
             for p in 0..24 {
-                for q in 0..24 {
+                for q in 0..=p {
                     let (r, c) = (3 * nodes[p / 3] + p % 3, 3 * nodes[q / 3] + q % 3);
-                    if r >= nfree || c >= nfree || r < c {
+                    if r >= nfree || c >= nfree {
                         continue;
                     }
+                    let (r, c) = (r.max(c), r.min(c));
                     let rows = &row_idx[col_ptr[c]..col_ptr[c + 1]];
                     let at = rows
                         .binary_search(&r)
                         .expect("pattern holds every element pair");
-                    map[p * 24 + q] = (col_ptr[c] + at) as u32;
+                    map[packed(p, q)] = (col_ptr[c] + at) as u32;
                 }
             }
             map
@@ -1066,28 +1069,29 @@ const MAX_CHANGED_NODES: usize = 2 * PCG_ITERATIONS;
 const PCG_TOLERANCE: f64 = 1e-4;
 
 /// The Cholesky factor of H into `l` (its buffer reused across factorisations: a fresh one costs
-/// the page faults of ~100 MB), shifting H by τ·diag(H) until it is positive definite.
+/// the page faults of ~100 MB; the factorisation zeroes it itself), shifting H by τ·diag(H)
+/// until it is positive definite.
 fn factorize_shifted(sys: &System, values: &[f64], l: &mut Vec<f64>) {
     let n = sys.col_ptr.len() - 1;
     let symbolic = SymbolicSparseColMatRef::new_checked(n, n, &sys.col_ptr, None, &sys.row_idx);
-    l.clear();
     l.resize(sys.symbolic.len_val(), 0.0);
     let par = Par::Seq;
     let mut buffer = MemBuffer::new(
         sys.symbolic
             .factorize_numeric_llt_scratch::<f64>(par, Default::default()),
     );
-    let mut shifted = values.to_vec();
+    let mut shifted = Vec::new();
     let mut tau = 0.0;
     loop {
         if tau > 0.0 {
-            shifted.copy_from_slice(values);
+            shifted.clear();
+            shifted.extend_from_slice(values);
             for c in 0..n {
                 // The diagonal is the first entry of each column.
                 shifted[sys.col_ptr[c]] *= 1.0 + tau;
             }
         }
-        let mat = SparseColMatRef::new(symbolic, &shifted);
+        let mat = SparseColMatRef::new(symbolic, if tau > 0.0 { &shifted } else { values });
         let stack = MemStack::new(&mut buffer);
         match sys.symbolic.factorize_numeric_llt(
             l,
