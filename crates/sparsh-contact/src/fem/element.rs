@@ -283,9 +283,10 @@ fn evaluate_portable(
     let mut gradient = [0.0; 24];
     // ∂v_e/∂u_ai = Σ_g w J G_iJ ∇N_aJ.
     let mut dv = [0.0; 24];
-    // Per Gauss point, the 24-vectors the Hessian is made of: `left` = [w(γ f + α g), wγ g,
-    // wβ g] and `right` = [g, f] (γ = −⅔c, α = (2/9) c I₁ + U'J, β = ⅓ c I₁ − U'J), and
-    // the weight w c of the ∇N_a·∇N_b term.
+    // Per Gauss point, the 24-vectors the Hessian is made of (γ = −⅔c, α = (2/9) c I₁ + U'J,
+    // β = ⅓ c I₁ − U'J): K's two outer products pair `left_k`'s w(γ f + α g) and wγ g with
+    // `right_k`'s g and f, M's pairs `left_m`'s wβ g with `right_m`'s g; and the weight w c of
+    // the ∇N_a·∇N_b term.
     let mut left_k = [[0.0; 16]; 24];
     let mut left_m = [[0.0; 8]; 24];
     let mut right_k = [[0.0; 24]; 16];
