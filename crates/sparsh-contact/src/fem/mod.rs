@@ -84,7 +84,7 @@ pub struct FemOptions {
     /// solve's bounds μλ.
     pub predict_bounds: bool,
     /// Surface nodes whose contact or friction state may differ from the kept factor's before a
-    /// Newton step refactorises without trying the conjugate gradients (default 24, twice the
+    /// Newton step refactorises without trying the conjugate gradients (default 12, twice the
     /// conjugate gradients' iteration cap; the reason is at `MAX_CHANGED_NODES` in the source);
     /// `usize::MAX`: always try them first.
     pub max_changed_nodes: usize,
@@ -1078,18 +1078,23 @@ fn build_system(mesh: &Mesh) -> System {
     }
 }
 
-/// Conjugate-gradient iterations allowed with a stale factor before refactorising.
-const PCG_ITERATIONS: usize = 12;
+/// Conjugate-gradient iterations allowed with a stale factor before refactorising. With the
+/// factor made in single precision a factorisation of the deep press's 30 k unknowns costs about
+/// 14 iterations' time (0.14 s against 10 ms); capped at 6 iterations (and
+/// [`MAX_CHANGED_NODES`] at 12) the press took 1.07–1.21 s a frame against 1.32–1.62 s at 12 (and
+/// 24) in alternating runs, 1.20–1.33 s at 8, 1.35 s at 4. The runs are in the book's contact
+/// chapter.
+const PCG_ITERATIONS: usize = 6;
 
 /// Surface nodes whose contact or friction state differs from the kept factor's from which a
 /// Newton step refactorises without trying the conjugate gradients (the default of
 /// [`FemOptions::max_changed_nodes`]: 2 × [`PCG_ITERATIONS`]).
 /// Each such node is a rank-one to rank-three change of the Hessian, and conjugate gradients
 /// preconditioned by a factor exact but for a rank-m change need up to m + 1 iterations. On the
-/// deep press (20 frames) 30 of the 42 preconditioned solves attempted with 24 or more changed
-/// nodes failed, 12 iterations lost each, and the 12 that converged took 7–12, where a
-/// factorisation costs about 19 iterations' time; below 24 nodes 7 of 67 failed. The trace and
-/// the timing are in the book's contact chapter.
+/// deep press (20 frames, with a cap of 12 iterations and a factor made in double precision)
+/// 30 of the 42 preconditioned solves attempted with 24 or more changed nodes failed, 12
+/// iterations lost each, and the 12 that converged took 7–12, where a factorisation cost about
+/// 19 iterations' time; below 24 nodes 7 of 67 failed.
 const MAX_CHANGED_NODES: usize = 2 * PCG_ITERATIONS;
 
 /// Relative residual ‖H s + g‖ / ‖g‖ at which a preconditioned step is accepted (an inexact
