@@ -65,6 +65,7 @@ slide_mm = [0.5, 2.0]
 const CONFIG: &str = r#"
 recipe = "recipe.toml"
 bootstrap = 50
+seen_test_period = 3
 [decoder]
 channels = 8
 [references]
@@ -182,6 +183,19 @@ fn fieldprobe_trains_without_fields_and_scores_against_them() {
     ]);
     assert!(out.status.success(), "{}", stderr(&out));
     let md = String::from_utf8_lossy(&out.stdout);
+    // every third training sequence is held out as the in-distribution split, scored apart
+    let log = stderr(&out);
+    let seen_sequences: usize = log
+        .split(" sequences of training shapes")
+        .next()
+        .and_then(|head| head.rsplit(' ').next())
+        .and_then(|n| n.parse().ok())
+        .unwrap_or_else(|| panic!("no in-distribution count: {log}"));
+    assert!(seen_sequences >= 1, "{log}");
+    assert!(
+        md.contains("Held-out sequences of the training shapes"),
+        "{md}"
+    );
     for method in [
         "self-supervised",
         "supervised",
@@ -247,6 +261,22 @@ fn fieldprobe_trains_without_fields_and_scores_against_them() {
         assert!(oracle(metric).iter().all(|v| *v < 1e-3), "{metric}");
     }
     assert!(oracle("contact_iou")[0] > 0.5);
+    // the in-distribution rows are scored against their own truth too (the oracle's r is 1),
+    // and the markers, a held-out-shape reference, have none
+    let seen_oracle = rows
+        .iter()
+        .find(|r| {
+            &r[0] == "seen_shapes"
+                && &r[1] == sparsh_bench::fields::run::ORACLE
+                && &r[2] == "pearson_p"
+        })
+        .expect("an in-distribution oracle row");
+    assert!((seen_oracle[3].parse::<f64>().unwrap() - 1.0).abs() < 1e-6);
+    assert!(
+        !rows
+            .iter()
+            .any(|r| &r[0] == "seen_shapes" && &r[1] == "markers")
+    );
     // the markers score only the sensor that prints them, and only the flow
     assert!(
         rows.iter()
@@ -344,6 +374,7 @@ fn bad_field_probe_inputs_are_one_line_errors() {
             "ceiling.validation_period",
         ),
         ("[ceiling]\nlr = 0.0\n", "ceiling.lr"),
+        ("seen_test_period = 1\n", "seen_test_period"),
         ("[train]\nshear_pairs = \"gel\"\n", "unknown variant `gel`"),
     ];
     for (extra, needle) in cases {

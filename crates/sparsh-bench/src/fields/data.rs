@@ -26,6 +26,9 @@ pub struct Pair {
 pub struct SequenceInfo {
     /// Held out for testing (its indenter shape is never trained on).
     pub test: bool,
+    /// Held out for the in-distribution test: a sequence of a training shape that no model
+    /// trains or validates on.
+    pub seen_test: bool,
     /// Family name.
     pub family: String,
     /// Dataset frame index of each frame (names `frames/` and `fields/` files).
@@ -60,17 +63,23 @@ pub struct FramePairs {
     pub train: Vec<Pair>,
     /// Held-out pairs (sequences of the `test` split).
     pub test: Vec<Pair>,
+    /// Held-out pairs of the training shapes (every `seen_test_period`-th sequence of the
+    /// `train` split; empty without one).
+    pub seen: Vec<Pair>,
 }
 
 impl FramePairs {
     /// Loads `dir` at input size `size` (`[height, width]`) and takes every `frame_stride`-th
-    /// frame `t ≥ offset` of each sequence as a pair `(t, t − offset)`. Reads `labels.jsonl`,
-    /// `frames/` and `backgrounds/` only.
+    /// frame `t ≥ offset` of each sequence as a pair `(t, t − offset)`. With
+    /// `seen_test_period` n ≥ 2, the training split's sequences n/2, n/2 + n, n/2 + 2n, … (in
+    /// dataset order) are held out as the in-distribution test ([`FramePairs::seen`]); 0: none.
+    /// Reads `labels.jsonl`, `frames/` and `backgrounds/` only.
     pub fn load(
         dir: &Path,
         size: [usize; 2],
         offset: usize,
         frame_stride: usize,
+        seen_test_period: usize,
     ) -> Result<Self, Error> {
         let labels_path = dir.join("labels.jsonl");
         if !labels_path.is_file() {
@@ -89,6 +98,7 @@ impl FramePairs {
                 image::image_dimensions(&frame_png).map_err(|e| Error::file(&frame_png, e))?;
             sequences.push(SequenceInfo {
                 test: first.split == "test",
+                seen_test: false,
                 family: first.family.clone(),
                 frame_index: rows.iter().map(|r| r.frame).collect(),
                 mm_per_px: first.mm_per_px,
@@ -106,13 +116,20 @@ impl FramePairs {
                 ),
             ));
         }
-        let (mut train, mut test) = (Vec::new(), Vec::new());
+        if seen_test_period >= 2 {
+            for (rank, info) in sequences.iter_mut().filter(|s| !s.test).enumerate() {
+                info.seen_test = rank % seen_test_period == seen_test_period / 2;
+            }
+        }
+        let (mut train, mut test, mut seen) = (Vec::new(), Vec::new(), Vec::new());
         for (s, info) in sequences.iter().enumerate() {
             let n = dataset.sequences[s].frames.len();
             for t in (offset..n).step_by(frame_stride.max(1)) {
                 let pair = Pair { sequence: s, t };
                 if info.test {
                     test.push(pair);
+                } else if info.seen_test {
+                    seen.push(pair);
                 } else {
                     train.push(pair);
                 }
@@ -136,6 +153,7 @@ impl FramePairs {
             offset,
             train,
             test,
+            seen,
         })
     }
 

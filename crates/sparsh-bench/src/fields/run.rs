@@ -139,6 +139,11 @@ pub struct FieldProbeConfig {
     /// Bootstrap draws of the intervals.
     #[serde(default = "thousand")]
     pub bootstrap: usize,
+    /// Every `seen_test_period`-th sequence of the training split is held out as the
+    /// in-distribution test (shapes the models train on, sequences they never see), scored
+    /// beside the held-out shapes; 0: no such split.
+    #[serde(default)]
+    pub seen_test_period: usize,
     /// Decoder size.
     #[serde(default)]
     pub decoder: DecoderSection,
@@ -174,6 +179,12 @@ impl FieldProbeConfig {
         let bad = |field: &str, msg: &str| Err(Error::config(path, field, msg));
         if cfg.frame_stride == 0 {
             return bad("frame_stride", "must be at least 1");
+        }
+        if cfg.seen_test_period == 1 {
+            return bad(
+                "seen_test_period",
+                "must be 0 (none) or at least 2 (1 would hold out every training sequence)",
+            );
         }
         if cfg.train.steps == 0 || cfg.train.batch_size == 0 {
             return bad("train.steps / train.batch_size", "must be at least 1");
@@ -327,10 +338,11 @@ fn load_pairs(
     quick: bool,
 ) -> Result<FramePairs, Error> {
     let size = recipe.encoder_config()?.img_size;
-    let mut pairs = FramePairs::load(data, size, offset, cfg.frame_stride)?;
+    let mut pairs = FramePairs::load(data, size, offset, cfg.frame_stride, cfg.seen_test_period)?;
     if quick {
         pairs.train.truncate(24);
         pairs.test.truncate(12);
+        pairs.seen.truncate(12);
     }
     Ok(pairs)
 }
@@ -344,6 +356,7 @@ fn settings(cfg: &FieldProbeConfig, model: Option<bool>) -> serde_json::Value {
         absolute(&cfg.recipe),
         cfg.frame_stride,
         cfg.decoder.max_flow_px,
+        cfg.seen_test_period,
     );
     match model {
         // the supervised decoder reads neither the self-supervised loss nor its pairs
@@ -443,7 +456,11 @@ pub fn train_run(
     log(&format!(
         "field probe: {} training pairs of {} sequences, I_t ⊕ I_(t−{offset}), {steps} steps per decoder",
         pairs.train.len(),
-        pairs.sequences.iter().filter(|s| !s.test).count()
+        pairs
+            .sequences
+            .iter()
+            .filter(|s| !s.test && !s.seen_test)
+            .count()
     ));
     let mut plan: Vec<(String, Option<u64>, bool)> = vec![("self-supervised".into(), None, false)];
     if cfg.references.supervised {
@@ -601,7 +618,8 @@ struct MethodScores {
 /// One row of the results: a method's metric over a subset of test sequences.
 #[derive(Debug, Clone, Serialize)]
 pub struct ResultRow {
-    /// Test frames it covers: `all` or `markers` (the GelSight 2017 sequences).
+    /// Test frames it covers: `all` (the held-out shapes), `seen_shapes` (held-out sequences of
+    /// the training shapes) or `markers` (the held-out shapes' GelSight 2017 sequences).
     pub subset: String,
     /// Method.
     pub method: String,
@@ -772,13 +790,17 @@ pub fn eval_run(
     let n = h * w;
     let truth = GroundTruth::new(&pairs);
     log(&format!(
-        "field probe eval: {} held-out pairs of {} sequences; thresholds from {} training pairs",
+        "field probe eval: {} held-out pairs of {} sequences of held-out shapes, {} of {} sequences \
+         of training shapes; thresholds from {} training pairs",
         pairs.test.len(),
         pairs.sequences.iter().filter(|s| s.test).count(),
+        pairs.seen.len(),
+        pairs.sequences.iter().filter(|s| s.seen_test).count(),
         pairs.train.len()
     ));
-    let test_truth = pairs
-        .test
+    // Scored: the held-out shapes' pairs, then the held-out sequences of training shapes.
+    let scored: Vec<Pair> = pairs.test.iter().chain(&pairs.seen).copied().collect();
+    let test_truth = scored
         .iter()
         .map(|&p| truth.pair(p))
         .collect::<Result<Vec<_>, _>>()?;
@@ -802,7 +824,7 @@ pub fn eval_run(
         best_threshold(&maps, &masks)
     };
     let score_all = |normals: Option<&[Vec<f32>]>, flows: Option<&[Vec<[f32; 2]>]>, thr: f32| {
-        (0..pairs.test.len())
+        (0..scored.len())
             .map(|i| {
                 score_pair(
                     normals.map(|m| m[i].as_slice()),
@@ -843,7 +865,7 @@ pub fn eval_run(
             t
         };
         let train_pred = predict(&model, &tokens_of(&pairs.train));
-        let mut test_pred = predict(&model, &tokens_of(&pairs.test));
+        let mut test_pred = predict(&model, &tokens_of(&scored));
         let mut train_maps: Vec<Vec<f32>> = train_pred.into_iter().map(|p| p.normal).collect();
         let flipped = background_above_contact(&train_maps);
         if flipped {
@@ -887,7 +909,7 @@ pub fn eval_run(
             .into_iter()
             .map(|p| p.normal)
             .collect();
-        let test_pred = predict(&pairs.test);
+        let test_pred = predict(&scored);
         let thr = threshold_for(&train_maps);
         let normals: Vec<Vec<f32>> = test_pred.iter().map(|p| p.normal.clone()).collect();
         let flows: Vec<Vec<[f32; 2]>> = test_pred.iter().map(|p| p.flow.clone()).collect();
@@ -912,10 +934,9 @@ pub fn eval_run(
     };
     let train_intensity = intensity(&pairs.train);
     let intensity_thr = threshold_for(&train_intensity);
-    let test_intensity = intensity(&pairs.test);
+    let test_intensity = intensity(&scored);
     let params = FarnebackParams::default();
-    let farneback: Vec<Vec<[f32; 2]>> = pairs
-        .test
+    let farneback: Vec<Vec<[f32; 2]>> = scored
         .iter()
         .map(|&p| {
             let (now, before) = pairs.frames(p);
@@ -923,7 +944,7 @@ pub fn eval_run(
                 .map_err(|e| Error::file(run, e))
         })
         .collect::<Result<_, _>>()?;
-    let zero_flow = vec![vec![[0.0f32; 2]; n]; pairs.test.len()];
+    let zero_flow = vec![vec![[0.0f32; 2]; n]; scored.len()];
     methods.push(MethodScores {
         name: "zero flow".into(),
         per_pair: score_all(None, Some(&zero_flow), 0.5),
@@ -960,8 +981,7 @@ pub fn eval_run(
         .filter(|&i| pairs.sequences[pairs.test[i].sequence].has_markers())
         .collect();
     if !marker_rows.is_empty() {
-        let flows: Vec<Vec<[f32; 2]>> = pairs
-            .test
+        let flows: Vec<Vec<[f32; 2]>> = scored
             .iter()
             .map(|&p| marker_flow(&pairs, p).unwrap_or_else(|| vec![[0.0; 2]; n]))
             .collect();
@@ -972,14 +992,25 @@ pub fn eval_run(
     }
     // rows
     let all_rows: Vec<usize> = (0..pairs.test.len()).collect();
+    let seen_rows: Vec<usize> = (pairs.test.len()..scored.len()).collect();
     let mut rows = Vec::new();
     for m in &methods {
         if m.name != "markers" {
             rows.extend(summarize(
                 "all",
                 m,
-                &pairs.test,
+                &scored,
                 &all_rows,
+                cfg.bootstrap,
+                cfg.seed,
+            ));
+        }
+        if !seen_rows.is_empty() && m.name != "markers" {
+            rows.extend(summarize(
+                "seen_shapes",
+                m,
+                &scored,
+                &seen_rows,
                 cfg.bootstrap,
                 cfg.seed,
             ));
@@ -988,7 +1019,7 @@ pub fn eval_run(
             rows.extend(summarize(
                 "markers",
                 m,
-                &pairs.test,
+                &scored,
                 &marker_rows,
                 cfg.bootstrap,
                 cfg.seed,
@@ -1075,7 +1106,7 @@ fn markdown_tables(rows: &[ResultRow], record: &RunRecord) -> String {
         .filter(|d| d.random_seed.is_some())
         .map(|d| d.name.clone())
         .collect();
-    for subset in ["all", "markers"] {
+    for subset in ["all", "seen_shapes", "markers"] {
         let in_subset: Vec<&ResultRow> = rows.iter().filter(|r| r.subset == subset).collect();
         if in_subset.is_empty() {
             continue;
@@ -1086,10 +1117,13 @@ fn markdown_tables(rows: &[ResultRow], record: &RunRecord) -> String {
                 methods.push(r.method.clone());
             }
         }
-        let title = if subset == "all" {
-            "All held-out sequences"
-        } else {
-            "Held-out sequences of the sensor with markers"
+        let title = match subset {
+            "all" => "All held-out sequences (shapes never trained on)",
+            "seen_shapes" => {
+                "Held-out sequences of the training shapes (in distribution; no model trained or \
+                 stopped on them)"
+            }
+            _ => "Held-out sequences of the sensor with markers",
         };
         md.push_str(&format!(
             "\n{title} (means over sequences, 95 % bootstrap interval)\n\n| method | {} |\n|---|{}\n",

@@ -706,6 +706,7 @@ mod tests {
             },
             sequences: vec![super::super::data::SequenceInfo {
                 test: false,
+                seen_test: false,
                 family: "blob".into(),
                 frame_index: (0..8).collect(),
                 mm_per_px: Some(0.1),
@@ -715,6 +716,7 @@ mod tests {
             offset,
             train: pairs.clone(),
             test: Vec::new(),
+            seen: Vec::new(),
         };
         let mut rng = Rng::new(2);
         let tokens = HookTokens::without_inputs(
