@@ -357,6 +357,8 @@ impl Chart for StabilityMap<'_> {
         let row_of = |p: &StabilityPoint| {
             if p.sweep == "depth_over_thickness" {
                 format!("depth/thickness, μ {}", p.friction)
+            } else if p.sweep == "press_slide" {
+                format!("press and slide, μ {}", p.friction)
             } else {
                 p.sweep.replace('_', " ")
             }

@@ -21,8 +21,9 @@ use std::panic::{AssertUnwindSafe, catch_unwind};
 use std::path::Path;
 use std::time::Instant;
 
+use glam::DVec3;
 use sparsh_scene::auto::{SolverTable, TableRow};
-use sparsh_scene::{Scene, SolverKind};
+use sparsh_scene::{Pose, Scene, SolverKind};
 
 use crate::validation::{Case, Check, evaluate_case, run};
 use crate::{ContactError, FemOptions};
@@ -32,6 +33,13 @@ const THICK_GEL_MM: f64 = 500.0;
 
 /// Gel thickness of the depth sweep (mm; a 5 mm sphere pressed into it).
 const DEPTH_SWEEP_GEL_MM: f64 = 2.0;
+
+/// Slide of the press-and-slide sweep over the press's rigid footprint radius: past gross
+/// slip at μ ≤ 1 on these presses, in partial slip at 1.5.
+const SLIDE_OVER_FOOTPRINT: f64 = 0.5;
+
+/// Frames the press-and-slide sweep's slide is solved in (after the press's one).
+const SLIDE_FRAMES: usize = 5;
 
 /// What to run.
 #[derive(Debug, Clone, PartialEq)]
@@ -48,6 +56,11 @@ pub struct StudyOptions {
     pub depth_over_thickness: Vec<f64>,
     /// Friction coefficients of the depth sweep (each depth is pressed at each).
     pub depth_friction: Vec<f64>,
+    /// Depths over gel thickness of the press-and-slide sweep: the depth sweep's press, then a
+    /// slide of half its footprint radius, graded on the tangential force.
+    pub slide_depth_over_thickness: Vec<f64>,
+    /// Friction coefficients of the press-and-slide sweep.
+    pub slide_friction: Vec<f64>,
     /// Elements per contact radius of the finite-element reference of the depth sweep (solved
     /// on a grid of half the sweep's cell).
     pub reference_elements_per_radius: f64,
@@ -63,6 +76,8 @@ impl StudyOptions {
             repeats: 3,
             depth_over_thickness: vec![0.01, 0.05, 0.1, 0.2, 0.3, 0.4, 0.6, 0.8, 1.0, 1.2],
             depth_friction: vec![0.0, 0.5, 1.0, 1.5],
+            slide_depth_over_thickness: vec![0.05, 0.1, 0.2, 0.3],
+            slide_friction: vec![0.5, 1.0, 1.5],
             reference_elements_per_radius: 12.0,
         }
     }
@@ -76,6 +91,8 @@ impl StudyOptions {
             repeats: 1,
             depth_over_thickness: vec![0.05, 0.2, 0.4, 1.2],
             depth_friction: vec![0.0, 1.0],
+            slide_depth_over_thickness: vec![0.1],
+            slide_friction: vec![1.0],
             reference_elements_per_radius: 8.0,
         }
     }
@@ -210,6 +227,8 @@ struct Setup {
     thickness_mm: f64,
     friction: f64,
     box_mm: f64,
+    /// Slide along x after the press (mm; 0: a press alone), in [`SLIDE_FRAMES`] frames.
+    slide_mm: f64,
 }
 
 impl Setup {
@@ -223,7 +242,30 @@ impl Setup {
             thickness_mm: THICK_GEL_MM,
             friction: 1.0,
             box_mm: 6.4,
+            slide_mm: 0.0,
         }
+    }
+
+    /// The poses after the press: the slide's frames (none without a slide).
+    fn slide_poses(&self) -> Vec<Pose> {
+        let [x, y] = self.position_xy_mm;
+        let steps = if self.slide_mm > 0.0 { SLIDE_FRAMES } else { 0 };
+        (1..=steps)
+            .map(|k| Pose {
+                position_mm: DVec3::new(
+                    x + self.slide_mm * k as f64 / steps as f64,
+                    y,
+                    -self.depth_mm,
+                ),
+                rotation_deg: DVec3::from_array(self.rotation_deg),
+            })
+            .collect()
+    }
+
+    /// The force component a sweep point is graded on: tangential (x) after a slide, normal
+    /// otherwise.
+    fn graded_component(&self) -> usize {
+        if self.slide_mm > 0.0 { 0 } else { 2 }
     }
 
     /// Rigid cone pressed so that Sneddon's contact radius is 1 mm.
@@ -369,10 +411,11 @@ fn analytic_trial(scene: &Scene, case: &Case) -> Result<Sample, String> {
     })
 }
 
-/// The normal force of a scene's last frame on its own grid.
-fn normal_force_n(scene: &Scene) -> Result<(f64, usize), ContactError> {
-    let r = run(scene, scene.solver, scene.grid(), &[])?;
-    Ok((r.fields.force_n[2], r.frames))
+/// The graded force component of a sweep's scene ([`Setup::graded_component`]) at its last
+/// frame, after its slide, on its own grid.
+fn sweep_force_n(scene: &Scene, setup: &Setup) -> Result<(f64, usize), ContactError> {
+    let r = run(scene, scene.solver, scene.grid(), &setup.slide_poses())?;
+    Ok((r.fields.force_n[setup.graded_component()], r.frames))
 }
 
 /// A scene of the accuracy study.
@@ -499,7 +542,8 @@ fn reference_name(case: Option<&Case>, reference_rung: SolverKind) -> &'static s
     }
 }
 
-fn stability_sweeps(cell_mm: f64, depths: &[f64], frictions: &[f64]) -> Vec<SweepPoint> {
+fn stability_sweeps(options: &StudyOptions) -> Vec<SweepPoint> {
+    let cell_mm = options.stability_cell_mm;
     let mut points = Vec::new();
     let mut push = |sweep, label: String, setup, case, cell_mm| {
         points.push(SweepPoint {
@@ -518,34 +562,58 @@ fn stability_sweeps(cell_mm: f64, depths: &[f64], frictions: &[f64]) -> Vec<Swee
     // elements with the same friction: linear theory is not the answer at depth, and friction
     // there stiffens the press beyond what the linear coupling of the layer gives. δ ≥ h no
     // rung may accept.
+    // The same press then slid by half its footprint radius, graded on the tangential force:
+    // where the layer's normal–tangential coupling and the stuck surface's finite strain move
+    // the friction force. Its rows enter the solver table beside the presses', so `auto` and
+    // the validity limits take the worse of the two at each depth and friction.
     let mut depth_points = Vec::new();
-    for &mu in frictions {
-        for &ratio in depths {
-            let (radius, h) = (5.0, DEPTH_SWEEP_GEL_MM);
-            let depth = ratio * h;
-            let footprint = (2.0f64 * radius * depth - depth * depth).max(0.0).sqrt();
-            let setup = Setup {
-                poisson: 0.5,
-                thickness_mm: h,
-                friction: mu,
-                box_mm: 3.2 * footprint + 1.0,
-                ..Setup::sphere(radius, depth)
-            };
-            depth_points.push(SweepPoint {
-                sweep: "depth_over_thickness",
-                label: if mu == 0.0 {
-                    format!("δ/h {ratio}")
-                } else {
-                    format!("δ/h {ratio}, μ {mu}")
-                },
-                setup,
-                case: None,
-                cell_mm,
-                reference_rung: SolverKind::Fem,
-                depth_over_h: ratio,
-                a_over_h: footprint / h,
-            });
-        }
+    let presses = options.depth_friction.iter().flat_map(|&mu| {
+        options
+            .depth_over_thickness
+            .iter()
+            .map(move |&d| (mu, d, false))
+    });
+    let slides = options.slide_friction.iter().flat_map(|&mu| {
+        options
+            .slide_depth_over_thickness
+            .iter()
+            .map(move |&d| (mu, d, true))
+    });
+    for (mu, ratio, slide) in presses.chain(slides) {
+        let (radius, h) = (5.0, DEPTH_SWEEP_GEL_MM);
+        let depth = ratio * h;
+        let footprint = (2.0f64 * radius * depth - depth * depth).max(0.0).sqrt();
+        let slide_mm = if slide {
+            SLIDE_OVER_FOOTPRINT * footprint
+        } else {
+            0.0
+        };
+        let setup = Setup {
+            poisson: 0.5,
+            thickness_mm: h,
+            friction: mu,
+            box_mm: 3.2 * footprint + 1.0 + 2.0 * slide_mm,
+            slide_mm,
+            ..Setup::sphere(radius, depth)
+        };
+        depth_points.push(SweepPoint {
+            sweep: if slide {
+                "press_slide"
+            } else {
+                "depth_over_thickness"
+            },
+            label: match (slide, mu == 0.0) {
+                (true, _) => format!("δ/h {ratio}, μ {mu}, slide {SLIDE_OVER_FOOTPRINT} a"),
+                (false, true) => format!("δ/h {ratio}"),
+                (false, false) => format!("δ/h {ratio}, μ {mu}"),
+            },
+            setup,
+            case: None,
+            cell_mm,
+            reference_rung: SolverKind::Fem,
+            depth_over_h: ratio,
+            a_over_h: footprint / h,
+        });
     }
     for angle in [80.0, 60.0, 45.0, 30.0, 20.0, 10.0] {
         push(
@@ -668,11 +736,7 @@ pub fn run_study(options: &StudyOptions, progress: &mut dyn FnMut(&str)) -> Stud
     }
 
     let mut stability = Vec::new();
-    let sweeps = stability_sweeps(
-        options.stability_cell_mm,
-        &options.depth_over_thickness,
-        &options.depth_friction,
-    );
+    let sweeps = stability_sweeps(options);
     for point in sweeps {
         let reference = reference_name(point.case.as_ref(), point.reference_rung);
         // Without a closed form (the box edge, a press at depth) the reference is the half-space
@@ -686,9 +750,15 @@ pub fn run_study(options: &StudyOptions, progress: &mut dyn FnMut(&str)) -> Stud
                 .setup
                 .scene(point.reference_rung, point.cell_mm / 2.0)
                 .and_then(|s| {
-                    let r = crate::validation::run_with(&s, s.solver, s.grid(), fem)
-                        .map_err(|e| e.to_string())?;
-                    Ok((r.fields.force_n[2], r.frames))
+                    let r = crate::validation::run_with(
+                        &s,
+                        s.solver,
+                        s.grid(),
+                        fem,
+                        &point.setup.slide_poses(),
+                    )
+                    .map_err(|e| e.to_string())?;
+                    Ok((r.fields.force_n[point.setup.graded_component()], r.frames))
                 }),
             Some(_) => Ok((f64::NAN, 0)),
         };
@@ -701,7 +771,7 @@ pub fn run_study(options: &StudyOptions, progress: &mut dyn FnMut(&str)) -> Stud
                         let (reference_n, _) =
                             fine.clone().map_err(|e| format!("reference failed: {e}"))?;
                         let (simulated_n, frames) =
-                            normal_force_n(&s).map_err(|e| e.to_string())?;
+                            sweep_force_n(&s, &point.setup).map_err(|e| e.to_string())?;
                         Ok(Sample {
                             reference_n,
                             simulated_n,
@@ -750,8 +820,10 @@ pub fn run_study(options: &StudyOptions, progress: &mut dyn FnMut(&str)) -> Stud
 /// a row for the thick gel (worst over the half-space scenes) and one per bonded layer (worst of
 /// the half-space scenes and that layer; a rung that declines thick gels as outside its
 /// validity, the finite elements, is judged on the layer alone). Failed points count as an
-/// infinite error. Then, per rung, one row per depth of the stability map's depth sweep (its
-/// error against the finite-strain reference).
+/// infinite error. Then, per rung, one row per point of the stability map's depth sweep and of
+/// its press-and-slide sweep (their errors against the finite-strain reference: the normal
+/// force of a press, the tangential force after a slide; [`SolverTable::depth_error`] takes
+/// the worse of the two at each depth and friction).
 pub fn solver_table(points: &[StudyPoint], stability: &[StabilityPoint]) -> SolverTable {
     let error = |p: &StudyPoint| {
         p.measurement

@@ -396,8 +396,9 @@ pub(crate) fn run_with(
     kind: SolverKind,
     grid: Grid,
     fem: FemOptions,
+    extra: &[Pose],
 ) -> Result<Run, ContactError> {
-    run_fem(scene, kind, grid, &[], fem, scene.gel)
+    run_fem(scene, kind, grid, extra, fem, scene.gel)
 }
 
 /// [`run`] with the finite-element rung's options and another gel.

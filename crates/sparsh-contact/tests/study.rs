@@ -124,7 +124,8 @@ fn quick_study_is_complete_and_physical() {
                 .count(),
             options.contact_cells.len() * 6
         );
-        // and one row per swept depth, from the stability map's depth sweep
+        // and one row per swept depth and friction, from the stability map's depth sweep and
+        // its press-and-slide sweep
         assert_eq!(
             study
                 .table
@@ -133,6 +134,7 @@ fn quick_study_is_complete_and_physical() {
                 .filter(|r| r.rung == rung && r.depth_over_h > 0.0)
                 .count(),
             options.depth_over_thickness.len() * options.depth_friction.len()
+                + options.slide_depth_over_thickness.len() * options.slide_friction.len()
         );
     }
     // At depth the finite elements are the reference of the sweep and meet it; the boundary
@@ -148,6 +150,20 @@ fn quick_study_is_complete_and_physical() {
         depth(SolverKind::Fem, "δ/h 0.4").measurement.outcome,
         Outcome::Ok
     );
+    // After the slide the finite elements meet their finer mesh on the friction force too, and
+    // the geometric rung, which has no friction, transmits none.
+    let slide = |rung| {
+        study
+            .stability
+            .iter()
+            .find(|p| p.sweep == "press_slide" && p.rung == rung)
+            .expect("press-and-slide point")
+            .measurement
+            .clone()
+    };
+    assert_eq!(slide(SolverKind::Fem).outcome, Outcome::Ok);
+    assert_eq!(slide(SolverKind::Geometric).simulated_n, Some(0.0));
+    assert!(slide(SolverKind::Fem).reference_n.unwrap() > 0.0);
     assert_eq!(
         depth(SolverKind::Fem, "δ/h 1.2").measurement.outcome,
         Outcome::OutOfValidity
