@@ -34,8 +34,7 @@ const THICK_GEL_MM: f64 = 500.0;
 /// Gel thickness of the depth sweep (mm; a 5 mm sphere pressed into it).
 const DEPTH_SWEEP_GEL_MM: f64 = 2.0;
 
-/// Slide of the press-and-slide sweep over the press's rigid footprint radius: past gross
-/// slip at μ ≤ 1 on these presses, in partial slip at 1.5.
+/// Slide of the press-and-slide sweep over the press's rigid footprint radius.
 const SLIDE_OVER_FOOTPRINT: f64 = 0.5;
 
 /// Frames the press-and-slide sweep's slide is solved in (after the press's one).
