@@ -1974,11 +1974,8 @@ mod tests {
         assert!(tangent_below > 0);
     }
 
-    #[test]
-    fn preconditioned_steps_match_a_fresh_factorisation() {
-        // The Newton system of a pressed state solved by conjugate gradients preconditioned
-        // with the factor of the Hessian before four nodes came into contact (their normal
-        // penalty left out, a rank-4 change), against the direct solve.
+    /// A layer pressed with friction, its state, and the Newton system at the pressed state.
+    fn pressed_newton_system() -> (Fem, State, Assembled) {
         let (grid, gap) = shallow();
         let mut fem = Fem::new(layer(1.0, 0.5), grid);
         press(&mut fem, &gap);
@@ -1994,6 +1991,26 @@ mod tests {
             .assemble(&st, &st.u, &ind, Some(SlipStiffness::Consistent))
             .ok()
             .unwrap();
+        (fem, st, now)
+    }
+
+    /// ‖x − s‖ / ‖s‖ for the step s = H⁻¹ rhs of a fresh double-precision factorisation.
+    fn off_direct_step(sys: &System, hessian: &[f64], rhs: &[f64], x: &[f64]) -> f64 {
+        let mut direct = rhs.to_vec();
+        let mut factor = Vec::new();
+        factorize_shifted(sys, hessian, &mut factor);
+        solve_with(sys, &factor, &mut direct);
+        let norm = |v: &[f64]| v.iter().map(|x| x * x).sum::<f64>().sqrt();
+        let diff: Vec<f64> = x.iter().zip(&direct).map(|(a, b)| a - b).collect();
+        norm(&diff) / norm(&direct)
+    }
+
+    #[test]
+    fn preconditioned_steps_match_a_fresh_factorisation() {
+        // The Newton system of a pressed state solved by conjugate gradients preconditioned
+        // with the factor of the Hessian before four nodes came into contact (their normal
+        // penalty left out, a rank-4 change), against the direct solve.
+        let (fem, st, now) = pressed_newton_system();
         let mut pressed_nodes: Vec<usize> = (0..st.lambda.len()).collect();
         pressed_nodes.sort_by(|a, b| st.lambda[*b].total_cmp(&st.lambda[*a]));
         let mut stale = now.hessian.clone();
@@ -2007,16 +2024,8 @@ mod tests {
         let stale_factor: Vec<f32> = factor.iter().map(|&v| v as f32).collect();
         let rhs: Vec<f64> = now.gradient.iter().map(|g| -g).collect();
         let (x, iterations) = pcg(&st.system, &stale_factor, &now.hessian, &rhs).unwrap();
-        let mut direct = rhs.clone();
-        factorize_shifted(&st.system, &now.hessian, &mut factor);
-        solve_with(&st.system, &factor, &mut direct);
-        let norm = |v: &[f64]| v.iter().map(|x| x * x).sum::<f64>().sqrt();
-        let diff: Vec<f64> = x.iter().zip(&direct).map(|(a, b)| a - b).collect();
-        assert!(
-            norm(&diff) < 1e-3 * norm(&direct),
-            "{}",
-            norm(&diff) / norm(&direct)
-        );
+        let off = off_direct_step(&st.system, &now.hessian, &rhs, &x);
+        assert!(off < 1e-3, "{off}");
         assert!((2..=PCG_ITERATIONS).contains(&iterations), "{iterations}");
     }
 
@@ -2025,36 +2034,13 @@ mod tests {
         // The Newton system of a pressed, nearly incompressible layer with friction: its own
         // factor rounded through single precision preconditions it to the double-precision
         // direct step.
-        let (grid, gap) = shallow();
-        let mut fem = Fem::new(layer(1.0, 0.5), grid);
-        press(&mut fem, &gap);
-        let st = fem.state.take().unwrap();
-        let shift = vec![[0.0; 2]; grid.len()];
-        let ind = Indenter {
-            grid,
-            height_mm: &gap.gap_mm,
-            approach_mm: 0.0,
-            shift_mm: &shift,
-        };
-        let now = fem
-            .assemble(&st, &st.u, &ind, Some(SlipStiffness::Consistent))
-            .ok()
-            .unwrap();
+        let (_, st, now) = pressed_newton_system();
         let mut single = Vec::new();
         assert!(factorize_single(&st.system, &now.hessian, &mut single));
         let rhs: Vec<f64> = now.gradient.iter().map(|g| -g).collect();
         let (x, iterations) = pcg(&st.system, &single, &now.hessian, &rhs).unwrap();
-        let mut direct = rhs.clone();
-        let mut factor = Vec::new();
-        factorize_shifted(&st.system, &now.hessian, &mut factor);
-        solve_with(&st.system, &factor, &mut direct);
-        let norm = |v: &[f64]| v.iter().map(|x| x * x).sum::<f64>().sqrt();
-        let diff: Vec<f64> = x.iter().zip(&direct).map(|(a, b)| a - b).collect();
-        assert!(
-            norm(&diff) < 1e-3 * norm(&direct),
-            "{}",
-            norm(&diff) / norm(&direct)
-        );
+        let off = off_direct_step(&st.system, &now.hessian, &rhs, &x);
+        assert!(off < 1e-3, "{off}");
         assert!(iterations <= 3, "{iterations}");
     }
 
