@@ -934,6 +934,52 @@ fn quick_study_writes_tables_and_charts() {
 }
 
 #[test]
+fn study_runs_named_sweeps_alone() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("sweep");
+    let out = sparsh(&[
+        "study",
+        "--quick",
+        "--sweep",
+        "poisson_ratio",
+        "--out",
+        dir.to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let csv = std::fs::read_to_string(dir.join("stability.csv")).unwrap();
+    let rows: Vec<&str> = csv.lines().skip(1).collect();
+    // seven Poisson ratios, each on every rung
+    assert_eq!(rows.len(), 7 * sparsh_scene::SolverKind::ALL.len());
+    assert!(
+        rows.iter().all(|r| r.starts_with("poisson_ratio,")),
+        "{csv}"
+    );
+    // no accuracy study, and no solver table that would miss rows
+    assert!(!dir.join("study.csv").exists() && !dir.join("solver_table.csv").exists());
+
+    let out = sparsh(&[
+        "study",
+        "--sweep",
+        "press_slid",
+        "--out",
+        dir.to_str().unwrap(),
+    ]);
+    assert_user_error(&out, "no sweep named \"press_slid\"");
+    let table = tmp.path().join("table.csv");
+    let out = sparsh(&[
+        "study",
+        "--sweep",
+        "press_slide",
+        "--table",
+        table.to_str().unwrap(),
+        "--out",
+        dir.to_str().unwrap(),
+    ]);
+    assert_user_error(&out, "no complete solver table");
+    assert!(!table.exists());
+}
+
+#[test]
 fn auto_solver_scene_renders() {
     let tmp = tempfile::tempdir().unwrap();
     let scene = write_scene(

@@ -320,12 +320,17 @@ enum Command {
         /// Output directory (study.csv, stability.csv, solver_table.csv, PNG and SVG charts).
         #[arg(long)]
         out: PathBuf,
-        /// Coarse grids and one run per point (about 2 minutes on 2 cores).
+        /// Coarse grids and one run per point (about 6 minutes on 2 cores).
         #[arg(long)]
         quick: bool,
         /// Also write the solver table here (assets/solver_table.csv is the one compiled in).
         #[arg(long)]
         table: Option<PathBuf>,
+        /// Run only these stability sweeps (comma-separated: depth_over_thickness, press_slide,
+        /// sharpness, poisson_ratio, friction, tangential_load, contact_cells) and no accuracy
+        /// study; writes stability.csv alone, no solver table.
+        #[arg(long, value_delimiter = ',')]
+        sweep: Vec<String>,
     },
     /// Print where each solver rung holds at a relative force tolerance (from the study's
     /// compiled-in table): the limits a scene's `validity` policy checks every frame against.
@@ -767,7 +772,12 @@ fn run(cli: Cli) -> Result<()> {
         Command::Validate { dir, json } => {
             validate::validate(&dir.unwrap_or_else(|| shipped("scenes/validation")), json)
         }
-        Command::Study { out, quick, table } => study::study(&out, quick, table.as_deref()),
+        Command::Study {
+            out,
+            quick,
+            table,
+            sweep,
+        } => study::study(&out, quick, table.as_deref(), sweep),
         Command::Limits { tolerance } => study::limits(tolerance),
         Command::Devices => pretrain::devices(),
         Command::Pretrain {

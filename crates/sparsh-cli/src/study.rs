@@ -9,7 +9,9 @@ use anyhow::{Context, Result, anyhow, bail};
 use plotters::coord::Shift;
 use plotters::prelude::*;
 use plotters::style::FontStyle;
-use sparsh_contact::study::{Outcome, StabilityPoint, Study, StudyOptions, StudyPoint, run_study};
+use sparsh_contact::study::{
+    Outcome, SWEEPS, StabilityPoint, Study, StudyOptions, StudyPoint, run_study,
+};
 use sparsh_scene::auto::SolverTable;
 use sparsh_scene::{RungLimits, SolverKind};
 
@@ -17,12 +19,26 @@ const FONT: &[u8] = include_bytes!("../../../assets/fonts/DejaVuSans.ttf");
 const SANS: &str = "sans-serif";
 
 /// Runs the study on one thread, writes `study.csv`, `stability.csv`, `solver_table.csv` and
-/// the charts (PNG and SVG) into `out`, and the table also to `table` when given.
-pub fn study(out: &Path, quick: bool, table: Option<&Path>) -> Result<()> {
-    let options = if quick {
-        StudyOptions::quick()
-    } else {
-        StudyOptions::full()
+/// the charts (PNG and SVG) into `out`, and the table also to `table` when given; with `sweeps`,
+/// only those stability sweeps and `stability.csv`.
+pub fn study(out: &Path, quick: bool, table: Option<&Path>, sweeps: Vec<String>) -> Result<()> {
+    if let Some(unknown) = sweeps.iter().find(|s| !SWEEPS.contains(&s.as_str())) {
+        bail!(
+            "--sweep: no sweep named {unknown:?} (the sweeps: {})",
+            SWEEPS.join(", ")
+        );
+    }
+    if !sweeps.is_empty() && table.is_some() {
+        bail!("--table: a study of some sweeps (--sweep) has no complete solver table to write");
+    }
+    let partial = !sweeps.is_empty();
+    let options = StudyOptions {
+        sweeps,
+        ..if quick {
+            StudyOptions::quick()
+        } else {
+            StudyOptions::full()
+        }
     };
     std::fs::create_dir_all(out).with_context(|| format!("{}: cannot create", out.display()))?;
     let pool = rayon::ThreadPoolBuilder::new()
@@ -33,8 +49,16 @@ pub fn study(out: &Path, quick: bool, table: Option<&Path>) -> Result<()> {
     let study = pool.install(|| run_study(&options, &mut |line| eprintln!("{line}")));
     let seconds = start.elapsed().as_secs_f64();
 
-    write_atomic(&out.join("study.csv"), study.points_csv().as_bytes())?;
     write_atomic(&out.join("stability.csv"), study.stability_csv().as_bytes())?;
+    if partial {
+        eprintln!(
+            "{} sweep points in {seconds:.0} s; {} written",
+            study.stability.len() / SolverKind::ALL.len(),
+            out.join("stability.csv").display()
+        );
+        return Ok(());
+    }
+    write_atomic(&out.join("study.csv"), study.points_csv().as_bytes())?;
     let table_csv = study.table.to_csv();
     // provenance beside the data, not inside it, so default CSV readers take the file as it is
     let provenance = serde_json::json!({

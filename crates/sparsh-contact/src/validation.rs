@@ -60,8 +60,9 @@ pub enum Check {
     BondedLayer,
     /// The layered rung on a layer much thicker than the contact against the half-space rung.
     LayeredVsHalfspace,
-    /// The scene's rung against the layered rung on the same grid and frames: force (a second
-    /// method; for the finite-element rung in the small-strain limit).
+    /// The scene's rung against the layered rung on the same grid and frames: force, and the
+    /// tangential force along the layered rung's where the last frame carries a shear load (a
+    /// second method; for the finite-element rung in the small-strain limit).
     VersusLayered,
     /// The scene's rung at ν = 0.49 and at ν = 0.4999: force over E* = E/(1 − ν²), which the
     /// elastic solution keeps (to the bottom effect) and a locking element inflates.
@@ -679,11 +680,18 @@ pub fn evaluate_case_with(
         Check::VersusLayered => {
             let own = count(run(scene, scene.solver, grid, &[])?);
             let layer = count(run(scene, SolverKind::Layered, grid, &[])?);
-            vec![v(
-                "force (N)",
-                layer.fields.force_n[2],
-                own.fields.force_n[2],
-            )]
+            let [fx, fy, fz] = layer.fields.force_n;
+            let mut rows = vec![v("force (N)", fz, own.fields.force_n[2])];
+            // A slide (a shear load over a twentieth of the normal one) is graded on it too.
+            if fx.hypot(fy) > 0.05 * fz.abs() {
+                let along = |f: [f64; 3]| (f[0] * fx + f[1] * fy) / fx.hypot(fy);
+                rows.push(v(
+                    "tangential_force (N)",
+                    along(layer.fields.force_n),
+                    along(own.fields.force_n),
+                ));
+            }
+            rows
         }
         Check::Locking => {
             let mut at = |nu: f64| -> Result<f64, ContactError> {
