@@ -68,7 +68,9 @@ pub struct FemOptions {
     pub penalty: f64,
     /// Newton iterations per solve before [`ContactError::NotConverged`].
     pub max_newton: usize,
-    /// Multiplier updates per frame before [`ContactError::NotConverged`].
+    /// Multiplier updates per frame before [`ContactError::NotConverged`] (default 100: on a
+    /// slide at μ = 1.5 the pressures and friction bounds settle linearly, about 8 % an update,
+    /// and a frame of the study's δ/h = 0.05 slide needs 41).
     pub max_updates: usize,
     /// The multiplier update stops when no node's pressure changes by more than this fraction
     /// of the peak pressure.
@@ -97,7 +99,7 @@ impl Default for FemOptions {
             growth: 1.6,
             penalty: 100.0,
             max_newton: 60,
-            max_updates: 40,
+            max_updates: 100,
             pressure_tolerance: 1e-3,
             warm_start: true,
             slip_secant: true,
