@@ -714,7 +714,8 @@ fn stability_sweeps(options: &StudyOptions) -> Vec<SweepPoint> {
 pub fn run_study(options: &StudyOptions, progress: &mut dyn FnMut(&str)) -> Study {
     let mut points = Vec::new();
     let whole = options.sweeps.is_empty();
-    for scene in analytic_scenes().into_iter().filter(|_| whole) {
+    let scenes = if whole { analytic_scenes() } else { Vec::new() };
+    for scene in scenes {
         for &cells in &options.contact_cells {
             let cell_mm = 1.0 / cells;
             for rung in SolverKind::ALL {
