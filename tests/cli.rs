@@ -956,6 +956,26 @@ fn study_runs_named_sweeps_alone() {
     );
     // no accuracy study, and no solver table that would miss rows
     assert!(!dir.join("study.csv").exists() && !dir.join("solver_table.csv").exists());
+    // Run again over a study's file: the sweep's rows are replaced, the other sweeps' kept.
+    let other = "sharpness,\"cone 10°\",0,layered,0.1,\"Sneddon\",1e0,1e0,0e0,ok,\"\"";
+    std::fs::write(dir.join("stability.csv"), format!("{csv}{other}\n")).unwrap();
+    let out = sparsh(&[
+        "study",
+        "--quick",
+        "--sweep",
+        "poisson_ratio",
+        "--out",
+        dir.to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let merged = std::fs::read_to_string(dir.join("stability.csv")).unwrap();
+    let mut lines: Vec<&str> = merged.lines().collect();
+    assert_eq!(lines.remove(0), csv.lines().next().unwrap());
+    assert_eq!(lines.remove(0), other);
+    lines.sort();
+    let mut fresh = rows.clone();
+    fresh.sort();
+    assert_eq!(lines, fresh);
 
     let out = sparsh(&[
         "study",
@@ -965,18 +985,37 @@ fn study_runs_named_sweeps_alone() {
         dir.to_str().unwrap(),
     ]);
     assert_user_error(&out, "no sweep named \"press_slid\"");
+    // A table is updated only by the sweeps it has rows of, and only when it can be read,
+    // before any solving.
     let table = tmp.path().join("table.csv");
-    let out = sparsh(&[
-        "study",
-        "--sweep",
-        "press_slide",
-        "--table",
-        table.to_str().unwrap(),
-        "--out",
-        dir.to_str().unwrap(),
-    ]);
-    assert_user_error(&out, "no complete solver table");
-    assert!(!table.exists());
+    let sweep_into_table = |sweep: &str| {
+        sparsh(&[
+            "study",
+            "--sweep",
+            sweep,
+            "--table",
+            table.to_str().unwrap(),
+            "--out",
+            dir.to_str().unwrap(),
+        ])
+    };
+    assert_user_error(
+        &sweep_into_table("poisson_ratio"),
+        "--table: the poisson_ratio sweep has no rows in the solver table",
+    );
+    assert_user_error(
+        &sweep_into_table("press_slide"),
+        "table.csv: cannot read the solver table",
+    );
+    std::fs::write(&table, "rung,a_over_cell\n").unwrap();
+    assert_user_error(
+        &sweep_into_table("press_slide"),
+        "table.csv: not a solver table",
+    );
+    assert_eq!(
+        std::fs::read_to_string(&table).unwrap(),
+        "rung,a_over_cell\n"
+    );
 }
 
 #[test]

@@ -171,8 +171,13 @@ fn limits_prints_the_checked_limits() {
                         limits.max_depth_over_h,
                         "{row}"
                     );
+                    assert_eq!(
+                        cells[5].parse::<f64>().unwrap(),
+                        limits.max_sliding_depth_over_h,
+                        "{row}"
+                    );
                 }
-                None => assert_eq!(&cells[3..5], ["nowhere", "nowhere"], "{row}"),
+                None => assert_eq!(&cells[3..6], ["nowhere"; 3], "{row}"),
             }
         }
     }

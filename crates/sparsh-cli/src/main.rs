@@ -323,12 +323,14 @@ enum Command {
         /// Coarse grids and one run per point (about 6 minutes on 2 cores).
         #[arg(long)]
         quick: bool,
-        /// Also write the solver table here (assets/solver_table.csv is the one compiled in).
+        /// Also write the solver table here (assets/solver_table.csv is the one compiled in);
+        /// with --sweep, replace the rows of those sweeps in the table already there.
         #[arg(long)]
         table: Option<PathBuf>,
         /// Run only these stability sweeps (comma-separated: depth_over_thickness, press_slide,
         /// sharpness, poisson_ratio, friction, tangential_load, contact_cells) and no accuracy
-        /// study; writes stability.csv alone, no solver table.
+        /// study: their rows replace theirs in OUT/stability.csv (the other sweeps' rows kept),
+        /// and in the --table given; no charts.
         #[arg(long, value_delimiter = ',')]
         sweep: Vec<String>,
     },

@@ -10,7 +10,8 @@ use plotters::coord::Shift;
 use plotters::prelude::*;
 use plotters::style::FontStyle;
 use sparsh_contact::study::{
-    Outcome, SWEEPS, StabilityPoint, Study, StudyOptions, StudyPoint, run_study,
+    Outcome, SWEEPS, StabilityPoint, Study, StudyOptions, StudyPoint, TABLE_SWEEPS, run_study,
+    update_table,
 };
 use sparsh_scene::auto::SolverTable;
 use sparsh_scene::{RungLimits, SolverKind};
@@ -19,8 +20,10 @@ const FONT: &[u8] = include_bytes!("../../../assets/fonts/DejaVuSans.ttf");
 const SANS: &str = "sans-serif";
 
 /// Runs the study on one thread, writes `study.csv`, `stability.csv`, `solver_table.csv` and
-/// the charts (PNG and SVG) into `out`, and the table also to `table` when given; with `sweeps`,
-/// only those stability sweeps and `stability.csv`.
+/// the charts (PNG and SVG) into `out`, and the table also to `table` when given. With
+/// `sweeps`, only those stability sweeps: their rows replace theirs in `out/stability.csv` (the
+/// other sweeps' rows kept, a new file if there is none) and, given `table`, in the solver table
+/// there; the charts are a whole study's.
 pub fn study(out: &Path, quick: bool, table: Option<&Path>, sweeps: Vec<String>) -> Result<()> {
     if let Some(unknown) = sweeps.iter().find(|s| !SWEEPS.contains(&s.as_str())) {
         bail!(
@@ -28,10 +31,25 @@ pub fn study(out: &Path, quick: bool, table: Option<&Path>, sweeps: Vec<String>)
             SWEEPS.join(", ")
         );
     }
-    if !sweeps.is_empty() && table.is_some() {
-        bail!("--table: a study of some sweeps (--sweep) has no complete solver table to write");
-    }
     let partial = !sweeps.is_empty();
+    // A study of some sweeps updates an existing table: read it before the hours of solving.
+    let earlier = match table {
+        Some(path) if partial => {
+            if let Some(rowless) = sweeps.iter().find(|s| !TABLE_SWEEPS.contains(&s.as_str())) {
+                bail!(
+                    "--table: the {rowless} sweep has no rows in the solver table (those that \
+                     do: {})",
+                    TABLE_SWEEPS.join(", ")
+                );
+            }
+            let text = std::fs::read_to_string(path)
+                .with_context(|| format!("{}: cannot read the solver table", path.display()))?;
+            let parsed = SolverTable::parse(&text)
+                .map_err(|e| anyhow!("{}: not a solver table: {e}", path.display()))?;
+            Some(parsed)
+        }
+        _ => None,
+    };
     let options = StudyOptions {
         sweeps,
         ..if quick {
@@ -49,23 +67,70 @@ pub fn study(out: &Path, quick: bool, table: Option<&Path>, sweeps: Vec<String>)
     let study = pool.install(|| run_study(&options, &mut |line| eprintln!("{line}")));
     let seconds = start.elapsed().as_secs_f64();
 
-    write_atomic(&out.join("stability.csv"), study.stability_csv().as_bytes())?;
     if partial {
+        let stability = out.join("stability.csv");
+        let kept = match std::fs::read_to_string(&stability) {
+            Ok(text) => text
+                .lines()
+                .skip(1)
+                .filter(|l| {
+                    !study
+                        .options
+                        .sweeps
+                        .iter()
+                        .any(|s| l.starts_with(&format!("{s},")))
+                })
+                .map(|l| format!("{l}\n"))
+                .collect::<String>(),
+            Err(_) => String::new(),
+        };
+        let fresh = study.stability_csv();
+        let (header, rows) = fresh.split_once('\n').unwrap_or((&fresh, ""));
+        write_atomic(&stability, format!("{header}\n{kept}{rows}").as_bytes())?;
+        if let (Some(path), Some(earlier)) = (table, earlier) {
+            let updated = update_table(&earlier, &study);
+            let sidecar = path.with_extension("json");
+            let mut provenance: serde_json::Value = std::fs::read_to_string(&sidecar)
+                .ok()
+                .and_then(|t| serde_json::from_str(&t).ok())
+                .filter(serde_json::Value::is_object)
+                .unwrap_or_else(|| serde_json::json!({}));
+            let update = serde_json::json!({
+                "sweeps": study.options.sweeps,
+                "written_by": format!(
+                    "sparsh {} study{} --sweep {}",
+                    env!("CARGO_PKG_VERSION"),
+                    if quick { " --quick" } else { "" },
+                    study.options.sweeps.join(",")
+                ),
+                "unix_time_s": unix_time_s(),
+            });
+            match provenance.get_mut("updated").and_then(|u| u.as_array_mut()) {
+                Some(list) => list.push(update),
+                None => provenance["updated"] = serde_json::json!([update]),
+            }
+            write_atomic(path, updated.to_csv().as_bytes())?;
+            write_atomic(&sidecar, provenance.to_string().as_bytes())?;
+            eprintln!(
+                "{}: the rows of {} replaced",
+                path.display(),
+                study.options.sweeps.join(", ")
+            );
+        }
         eprintln!(
             "{} sweep points in {seconds:.0} s; {} written",
             study.stability.len() / SolverKind::ALL.len(),
-            out.join("stability.csv").display()
+            stability.display()
         );
         return Ok(());
     }
+    write_atomic(&out.join("stability.csv"), study.stability_csv().as_bytes())?;
     write_atomic(&out.join("study.csv"), study.points_csv().as_bytes())?;
     let table_csv = study.table.to_csv();
     // provenance beside the data, not inside it, so default CSV readers take the file as it is
     let provenance = serde_json::json!({
         "written_by": format!("sparsh {} study{}", env!("CARGO_PKG_VERSION"), if quick { " --quick" } else { "" }),
-        "unix_time_s": std::time::SystemTime::now()
-            .duration_since(std::time::UNIX_EPOCH)
-            .map_or(0, |d| d.as_secs()),
+        "unix_time_s": unix_time_s(),
         "threads": 1,
         "what": sparsh_scene::auto::SolverTable::DESCRIPTION,
     })
@@ -463,6 +528,12 @@ impl Chart for StabilityMap<'_> {
     }
 }
 
+fn unix_time_s() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_secs())
+}
+
 /// `sparsh limits`: each rung's validity limits at `tolerance`, per friction coefficient of the
 /// depth sweep, as a Markdown table on stdout.
 pub fn limits(tolerance: f64) -> Result<()> {
@@ -474,18 +545,27 @@ pub fn limits(tolerance: f64) -> Result<()> {
     if frictions.is_empty() {
         frictions.push(0.0);
     }
-    println!("| rung | friction μ up to | a/h up to | δ/h up to | best studied error |");
-    println!("|---|---|---|---|---|");
+    println!(
+        "| rung | friction μ up to | a/h up to | δ/h up to | δ/h up to, sliding | best studied error |"
+    );
+    println!("|---|---|---|---|---|---|");
+    let depth = |d: f64| {
+        if d.is_finite() {
+            format!("{d}")
+        } else {
+            "not swept".into()
+        }
+    };
     for rung in SolverKind::ALL {
         for (k, &friction) in frictions.iter().enumerate() {
             let limits = RungLimits::of(table, rung, tolerance, friction);
-            let depth = match limits.max_depth_over_h {
-                d if d.is_finite() => format!("{d}"),
-                _ => "not swept".into(),
-            };
-            let (a_over_h, depth) = match limits.max_a_over_h {
-                Some(a) => (format!("{a}"), depth),
-                None => ("nowhere".into(), "nowhere".into()),
+            let (a_over_h, depth, sliding) = match limits.max_a_over_h {
+                Some(a) => (
+                    format!("{a}"),
+                    depth(limits.max_depth_over_h),
+                    depth(limits.max_sliding_depth_over_h),
+                ),
+                None => ("nowhere".into(), "nowhere".into(), "nowhere".into()),
             };
             // Past the largest swept friction a press sticks wholly: its limits hold.
             let mu = if k + 1 == frictions.len() {
@@ -494,7 +574,7 @@ pub fn limits(tolerance: f64) -> Result<()> {
                 format!("{friction}")
             };
             println!(
-                "| {} | {mu} | {a_over_h} | {depth} | {:.2} % |",
+                "| {} | {mu} | {a_over_h} | {depth} | {sliding} | {:.2} % |",
                 rung.name(),
                 100.0 * limits.best_rel_error
             );

@@ -79,6 +79,40 @@ pub const SWEEPS: [&str; 7] = [
     "contact_cells",
 ];
 
+/// The sweeps whose points are rows of the solver table (depth rows), and which rows each owns.
+pub const TABLE_SWEEPS: [&str; 2] = ["depth_over_thickness", "press_slide"];
+
+/// Whether `row` of a solver table comes from sweep `name` (presses at depth from the depth
+/// sweep, slides from the press-and-slide sweep; no row from the other sweeps).
+pub fn sweep_owns_row(name: &str, row: &TableRow) -> bool {
+    match name {
+        "depth_over_thickness" => row.depth_over_h > 0.0 && row.slide_over_a == 0.0,
+        "press_slide" => row.slide_over_a > 0.0,
+        _ => false,
+    }
+}
+
+/// `table` with the rows of the sweeps `partial` ran replaced by `partial`'s: how a study of
+/// some sweeps ([`StudyOptions::sweeps`]) brings a whole study's table up to date.
+pub fn update_table(table: &SolverTable, partial: &Study) -> SolverTable {
+    let replaced = |r: &TableRow| {
+        partial
+            .options
+            .sweeps
+            .iter()
+            .any(|name| sweep_owns_row(name, r))
+    };
+    SolverTable {
+        rows: table
+            .rows
+            .iter()
+            .filter(|r| !replaced(r))
+            .chain(&partial.table.rows)
+            .copied()
+            .collect(),
+    }
+}
+
 impl StudyOptions {
     /// The full study (`sparsh study`).
     pub fn full() -> StudyOptions {
@@ -842,8 +876,8 @@ pub fn run_study(options: &StudyOptions, progress: &mut dyn FnMut(&str)) -> Stud
 /// validity, the finite elements, is judged on the layer alone). Failed points count as an
 /// infinite error. Then, per rung, one row per point of the stability map's depth sweep and of
 /// its press-and-slide sweep (their errors against the finite-strain reference: the normal
-/// force of a press, the tangential force after a slide; [`SolverTable::depth_error`] takes
-/// the worse of the two at each depth and friction).
+/// force of a press, the tangential force after a slide, marked by its `slide_over_a`;
+/// [`SolverTable::depth_error`] reads the slides' rows for sliding contacts only).
 pub fn solver_table(points: &[StudyPoint], stability: &[StabilityPoint]) -> SolverTable {
     let error = |p: &StudyPoint| {
         p.measurement
@@ -888,6 +922,7 @@ pub fn solver_table(points: &[StudyPoint], stability: &[StabilityPoint]) -> Solv
                 a_over_h: 1.0 / THICK_GEL_MM,
                 depth_over_h: 0.0,
                 friction: 0.0,
+                slide_over_a: 0.0,
                 rel_error: base_error,
                 ms_per_frame: base_ms,
             });
@@ -909,6 +944,7 @@ pub fn solver_table(points: &[StudyPoint], stability: &[StabilityPoint]) -> Solv
                     a_over_h: chi,
                     depth_over_h: 0.0,
                     friction: 0.0,
+                    slide_over_a: 0.0,
                     rel_error: base_error.max(e),
                     ms_per_frame: base_ms.max(ms),
                 });
@@ -925,6 +961,11 @@ pub fn solver_table(points: &[StudyPoint], stability: &[StabilityPoint]) -> Solv
                 a_over_h: p.a_over_h,
                 depth_over_h: p.depth_over_h,
                 friction: p.friction,
+                slide_over_a: if p.sweep == "press_slide" {
+                    SLIDE_OVER_FOOTPRINT
+                } else {
+                    0.0
+                },
                 rel_error: m
                     .rel_error
                     .filter(|_| matches!(m.outcome, Outcome::Ok | Outcome::OverTolerance))
@@ -1013,5 +1054,78 @@ mod tests {
             .collect();
         run.dedup();
         assert_eq!(run, SWEEPS);
+    }
+
+    fn point(sweep: &'static str, depth_over_h: f64, rel_error: f64) -> StabilityPoint {
+        StabilityPoint {
+            sweep,
+            label: String::new(),
+            friction: 1.0,
+            depth_over_h,
+            a_over_h: 0.5,
+            rung: SolverKind::Layered,
+            cell_mm: 0.1,
+            reference: "fem",
+            measurement: Measurement {
+                reference_n: Some(1.0),
+                simulated_n: Some(1.0 + rel_error),
+                rel_error: Some(rel_error),
+                ms_per_frame: 1.0,
+                frames: 1,
+                outcome: Outcome::OverTolerance,
+                reason: String::new(),
+            },
+        }
+    }
+
+    /// Each depth row of the table is owned by the one sweep it came from, and a study of the
+    /// press-and-slide sweep alone replaces that sweep's rows of a whole table, keeping the rest.
+    #[test]
+    fn a_sweep_replaces_its_own_rows_of_the_table() {
+        let whole = [
+            point("depth_over_thickness", 0.1, 0.01),
+            point("press_slide", 0.1, 0.04),
+            point("sharpness", 0.0, 0.5),
+        ];
+        let table = solver_table(&[], &whole);
+        assert_eq!(table.rows.len(), 2);
+        for (row, sweep) in table
+            .rows
+            .iter()
+            .zip(["depth_over_thickness", "press_slide"])
+        {
+            let owners: Vec<&str> = TABLE_SWEEPS
+                .into_iter()
+                .filter(|s| sweep_owns_row(s, row))
+                .collect();
+            assert_eq!(owners, [sweep], "{row:?}");
+        }
+        let slides = [
+            point("press_slide", 0.1, 0.02),
+            point("press_slide", 0.2, 0.05),
+        ];
+        let partial = Study {
+            options: StudyOptions {
+                sweeps: vec!["press_slide".into()],
+                ..StudyOptions::quick()
+            },
+            points: Vec::new(),
+            table: solver_table(&[], &slides),
+            stability: slides.to_vec(),
+        };
+        let updated = update_table(&table, &partial);
+        let errors: Vec<(f64, f64, f64)> = updated
+            .rows
+            .iter()
+            .map(|r| (r.depth_over_h, r.slide_over_a, r.rel_error))
+            .collect();
+        assert_eq!(
+            errors,
+            [
+                (0.1, 0.0, 0.01),
+                (0.1, SLIDE_OVER_FOOTPRINT, 0.02),
+                (0.2, SLIDE_OVER_FOOTPRINT, 0.05)
+            ]
+        );
     }
 }

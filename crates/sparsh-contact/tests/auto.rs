@@ -101,6 +101,7 @@ fn auto_meets_its_tolerance_on_held_out_scenes_and_is_never_dearer() {
             &scene.gel,
             choice.contact_radius_mm,
             choice.depth_over_h * scene.gel.thickness_mm,
+            choice.sliding,
             choice.tolerance,
         );
         let best = most_accurate(&all).expect("candidates");

@@ -45,7 +45,8 @@ fn the_half_space_limit_is_the_layer_effect() {
 /// Each rung's depth limit at the study's pass mark (2 %) and each swept friction is the deepest
 /// swept δ/h up to which the stability map passes every swept depth at that friction and every
 /// smaller one (the sweep's shallowest depth stands for the small-strain regime, so a rung's limit
-/// is never shallower than it), and the geometric rung has no a/h range at all.
+/// is never shallower than it) — a sliding contact's over the press-and-slide points too — and
+/// the geometric rung has no a/h range at all.
 #[test]
 fn depth_limits_match_the_stability_map() {
     let path = concat!(
@@ -62,11 +63,11 @@ fn depth_limits_match_the_stability_map() {
         column("rung"),
         column("outcome"),
     );
-    // (rung, friction, depth, passed)
-    let mut map: Vec<(SolverKind, f64, f64, bool)> = Vec::new();
+    // (rung, friction, depth, passed, slide)
+    let mut map: Vec<(SolverKind, f64, f64, bool, bool)> = Vec::new();
     for record in reader.records() {
         let record = record.unwrap();
-        // presses and presses-and-slides alike: the table takes the worse at each depth
+        // presses bound every frame, presses-and-slides the sliding ones as well
         if !matches!(&record[sweep], "depth_over_thickness" | "press_slide") {
             continue;
         }
@@ -82,6 +83,7 @@ fn depth_limits_match_the_stability_map() {
             record[friction].parse().unwrap(),
             depth,
             &record[outcome] == "ok",
+            &record[sweep] == "press_slide",
         ));
     }
     let mut frictions: Vec<f64> = map.iter().map(|m| m.1).collect();
@@ -94,22 +96,33 @@ fn depth_limits_match_the_stability_map() {
             depths.sort_by(f64::total_cmp);
             depths.dedup();
             assert!(depths.len() >= 6, "{kind:?}: {} swept depths", depths.len());
-            let passed = |d: f64| {
+            let passed = |d: f64, sliding: bool| {
                 map.iter()
-                    .filter(|m| m.0 == kind && m.2 == d && m.1 <= mu)
+                    .filter(|m| m.0 == kind && m.2 == d && m.1 <= mu && (sliding || !m.4))
                     .all(|m| m.3)
             };
-            let from_map = depths
-                .iter()
-                .copied()
-                .take_while(|&d| passed(d))
-                .last()
-                .unwrap_or(depths[0]);
+            let from_map = |sliding: bool| {
+                depths
+                    .iter()
+                    .copied()
+                    .take_while(|&d| passed(d, sliding))
+                    .last()
+                    .unwrap_or(depths[0])
+            };
             let limits = RungLimits::of(SolverTable::builtin(), kind, 0.02, mu);
-            assert_eq!(limits.max_depth_over_h, from_map, "{kind:?} at μ {mu}");
+            assert_eq!(
+                limits.max_depth_over_h,
+                from_map(false),
+                "{kind:?} at μ {mu}"
+            );
+            assert_eq!(
+                limits.max_sliding_depth_over_h,
+                from_map(true),
+                "{kind:?} sliding at μ {mu}"
+            );
         }
     }
     let geometric = RungLimits::of(SolverTable::builtin(), SolverKind::Geometric, 0.02, 1.0);
     assert_eq!(geometric.max_a_over_h, None);
-    assert_eq!(geometric.check(true, 0.1, 0.0).name(), "rung");
+    assert_eq!(geometric.check(true, 0.1, 0.0, false).name(), "rung");
 }

@@ -36,6 +36,10 @@ pub struct TableRow {
     /// Friction coefficient of the depth sweep's row (0 on the accuracy study's rows, which
     /// are read whatever the scene's friction).
     pub friction: f64,
+    /// Slide over the contact's rigid footprint radius before the row's force was graded: 0 for
+    /// a press (graded on the normal force), > 0 for the press-and-slide sweep (graded on the
+    /// tangential force after the slide), whose rows bound only frames loaded tangentially.
+    pub slide_over_a: f64,
     /// Worst |relative force error| measured there (∞ where a case failed).
     pub rel_error: f64,
     /// Worst time per frame measured there (ms).
@@ -49,7 +53,8 @@ pub struct SolverTable {
     pub rows: Vec<TableRow>,
 }
 
-const HEADER: &str = "rung,a_over_cell,a_over_h,depth_over_h,friction,rel_error,ms_per_frame";
+const HEADER: &str =
+    "rung,a_over_cell,a_over_h,depth_over_h,friction,slide_over_a,rel_error,ms_per_frame";
 
 impl SolverTable {
     /// The compiled-in table.
@@ -76,8 +81,8 @@ impl SolverTable {
             .map(|(n, line)| {
                 let f: Vec<&str> = line.split(',').map(str::trim).collect();
                 let bad = |what: &str| format!("line {}: {what}", n + 1);
-                if f.len() != 7 {
-                    return Err(bad("needs 7 fields"));
+                if f.len() != 8 {
+                    return Err(bad("needs 8 fields"));
                 }
                 let num = |s: &str| {
                     s.parse::<f64>()
@@ -89,18 +94,24 @@ impl SolverTable {
                     a_over_h: num(f[2])?,
                     depth_over_h: num(f[3])?,
                     friction: num(f[4])?,
-                    rel_error: num(f[5])?,
-                    ms_per_frame: num(f[6])?,
+                    slide_over_a: num(f[5])?,
+                    rel_error: num(f[6])?,
+                    ms_per_frame: num(f[7])?,
                 };
                 if !(row.a_over_cell > 0.0
                     && row.a_over_h >= 0.0
                     && row.depth_over_h >= 0.0
                     && row.friction >= 0.0
+                    && row.slide_over_a >= 0.0
                     && row.rel_error >= 0.0)
                 {
                     return Err(bad(
-                        "a_over_cell must be > 0, a_over_h, depth_over_h, friction and rel_error ≥ 0",
+                        "a_over_cell must be > 0, a_over_h, depth_over_h, friction, slide_over_a \
+                         and rel_error ≥ 0",
                     ));
+                }
+                if row.slide_over_a > 0.0 && row.depth_over_h == 0.0 {
+                    return Err(bad("a row with slide_over_a > 0 needs depth_over_h > 0"));
                 }
                 Ok(row)
             })
@@ -112,8 +123,9 @@ impl SolverTable {
     pub const DESCRIPTION: &'static str = "worst |relative force error| and worst ms per frame of \
         each rung at each studied contact radius in cells (a_over_cell) and contact radius over gel \
         thickness (a_over_h) with depth_over_h = 0, and along the depth sweep (depth_over_h > 0, \
-        at each swept friction coefficient, against finite-strain finite elements); read by \
-        solver = \"auto\" and the validity limits";
+        at each swept friction coefficient, against finite-strain finite elements: the normal \
+        force of a press with slide_over_a = 0, the tangential force after a slide of \
+        slide_over_a footprint radii otherwise); read by solver = \"auto\" and the validity limits";
 
     /// CSV text (RFC 4180: the header row first, nothing before it), one row per studied point.
     pub fn to_csv(&self) -> String {
@@ -121,12 +133,13 @@ impl SolverTable {
         out.push('\n');
         for r in &self.rows {
             out.push_str(&format!(
-                "{},{},{},{},{},{:e},{:e}\n",
+                "{},{},{},{},{},{},{:e},{:e}\n",
                 r.rung.name(),
                 r.a_over_cell,
                 r.a_over_h,
                 r.depth_over_h,
                 r.friction,
+                r.slide_over_a,
                 r.rel_error,
                 r.ms_per_frame
             ));
@@ -162,12 +175,30 @@ impl SolverTable {
     /// friction changes nothing. Presses no deeper than the shallowest swept depth are the
     /// small-strain regime the rest of the table covers (the sweep is a sphere on a thin layer,
     /// so its shallow rows also hold the layer's effect, which a/h already bounds): 0 there, and
-    /// when the table has no depth rows for the rung.
-    pub fn depth_error(&self, rung: SolverKind, depth_over_h: f64, friction: f64) -> f64 {
+    /// when the table has no depth rows for the rung. A press is bounded by the presses' rows
+    /// alone; a contact `sliding` (loaded tangentially) by those and, read the same way over
+    /// both, the press-and-slide rows (`slide_over_a > 0`).
+    pub fn depth_error(
+        &self,
+        rung: SolverKind,
+        depth_over_h: f64,
+        friction: f64,
+        sliding: bool,
+    ) -> f64 {
+        let press = self.swept_error(rung, depth_over_h, friction, false);
+        if sliding {
+            press.max(self.swept_error(rung, depth_over_h, friction, true))
+        } else {
+            press
+        }
+    }
+
+    /// [`SolverTable::depth_error`] over the presses' rows, and the slides' too if `slides`.
+    fn swept_error(&self, rung: SolverKind, depth_over_h: f64, friction: f64, slides: bool) -> f64 {
         let rows: Vec<&TableRow> = self
             .rows
             .iter()
-            .filter(|r| r.rung == rung && r.depth_over_h > 0.0)
+            .filter(|r| r.rung == rung && r.depth_over_h > 0.0 && (slides || r.slide_over_a == 0.0))
             .collect();
         let shallowest = rows.iter().map(|r| r.depth_over_h).reduce(f64::min);
         if shallowest.is_none_or(|d| depth_over_h <= d) {
@@ -221,6 +252,9 @@ pub struct AutoChoice {
     pub a_over_h: f64,
     /// Estimated deepest indentation over gel thickness.
     pub depth_over_h: f64,
+    /// Whether the indenter moves along the gel while pressed into it (the depth sweep's
+    /// press-and-slide rows bound the error then).
+    pub sliding: bool,
     /// Predicted |relative force error| (the worse of the table's bounding point and the depth
     /// sweep at the scene's depth).
     pub predicted_rel_error: f64,
@@ -236,21 +270,23 @@ impl AutoChoice {
     }
 }
 
-/// Every (rung, stride) the table can predict for a contact of `contact_radius_mm` on `sensor`'s
-/// image and `gel`: strides divide the image size.
+/// Every (rung, stride) the table can predict for a contact of `contact_radius_mm` pressed
+/// `depth_mm` deep (`sliding` along the gel or not) on `sensor`'s image and `gel`: strides divide
+/// the image size.
 pub fn candidates(
     table: &SolverTable,
     sensor: &SensorConfig,
     gel: &Gel,
     contact_radius_mm: f64,
     depth_mm: f64,
+    sliding: bool,
     tolerance: f64,
 ) -> Vec<AutoChoice> {
     let a_over_h = contact_radius_mm / gel.thickness_mm;
     let depth_over_h = depth_mm / gel.thickness_mm;
     let mut out = Vec::new();
     for solver in SolverKind::ALL {
-        let depth_error = table.depth_error(solver, depth_over_h, gel.friction);
+        let depth_error = table.depth_error(solver, depth_over_h, gel.friction, sliding);
         for stride in 1..=sensor.width_px.min(sensor.height_px) {
             if !(sensor.width_px.is_multiple_of(stride) && sensor.height_px.is_multiple_of(stride))
             {
@@ -265,6 +301,7 @@ pub fn candidates(
                     contact_radius_mm,
                     a_over_h,
                     depth_over_h,
+                    sliding,
                     predicted_rel_error: row.rel_error.max(depth_error),
                     predicted_ms_per_frame: row.ms_per_frame,
                 });
@@ -336,6 +373,38 @@ pub fn depth_estimate_mm(
         .map(|f| (depth(coarse, f), f))
         .max_by(|a, b| a.0.total_cmp(&b.0))
         .map_or(0.0, |(_, f)| depth(image, f))
+}
+
+/// Whether the indenter moves along the gel while pressed into it: two consecutive frames that
+/// both reach below the gel's surface (cast on the coarse grid of [`depth_estimate_mm`]; under
+/// force control, both loaded) with the indenter moved in x or y or turned about z between them.
+pub fn sliding_estimate(
+    indenter: &Indenter,
+    frames: &[FrameTarget],
+    sensor: &SensorConfig,
+) -> bool {
+    let image = sensor.grid();
+    let coarse = Grid {
+        nx: image.nx.div_ceil(4),
+        ny: image.ny.div_ceil(4),
+        cell_mm: image.cell_mm * 4.0,
+    };
+    let pressed = |f: &FrameTarget| match f.normal_force_n {
+        Some(force) => force > 0.0,
+        None => GapField::cast(indenter, &f.pose, coarse)
+            .gap_mm
+            .iter()
+            .any(|&g| g < 0.0),
+    };
+    let moved = |a: &FrameTarget, b: &FrameTarget| {
+        let (p, q) = (a.pose, b.pose);
+        p.position_mm.x != q.position_mm.x
+            || p.position_mm.y != q.position_mm.y
+            || p.rotation_deg.z != q.rotation_deg.z
+    };
+    frames
+        .windows(2)
+        .any(|w| moved(&w[0], &w[1]) && pressed(&w[0]) && pressed(&w[1]))
 }
 
 /// A lower estimate of the largest contact radius (mm) along the frames: (2/π) times the radius

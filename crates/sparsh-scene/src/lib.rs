@@ -512,9 +512,10 @@ impl Scene {
                 .map_err(|m| SceneError::invalid(path, "solver", m))?;
                 let depth =
                     auto::depth_estimate_mm(&file.indenter, &indenter, &frames, &sensor, radius);
+                let sliding = auto::sliding_estimate(&indenter, &frames, &sensor);
                 let table = auto::SolverTable::builtin();
                 let candidates =
-                    auto::candidates(table, &sensor, &file.gel, radius, depth, tolerance);
+                    auto::candidates(table, &sensor, &file.gel, radius, depth, sliding, tolerance);
                 let choice = auto::choose(&candidates).ok_or_else(|| {
                     SceneError::invalid(
                         path,

@@ -8,7 +8,9 @@
 //!   a rung declined the case are the rung's own refusals and set no limit here);
 //! - indentation depth over gel thickness δ/h: the deepest swept depth up to which every swept
 //!   depth meets the tolerance against finite-strain finite elements, at the scene's friction
-//!   coefficient ([`SolverTable::depth_error`]: friction at depth is where the rungs part).
+//!   coefficient ([`SolverTable::depth_error`]: friction at depth is where the rungs part); a
+//!   frame loaded tangentially (sliding) is held to the press-and-slide rows as well, which
+//!   grade the tangential force after a slide.
 //!
 //! A rung that meets the tolerance at no studied point (the geometric rung makes no force claim)
 //! is outside its validity whenever it is in contact. The mechanics grid's resolution is not a
@@ -51,6 +53,8 @@ pub enum Limit {
     ContactRadiusOverThickness,
     /// Indentation depth over gel thickness.
     DepthOverThickness,
+    /// Indentation depth over gel thickness of a frame loaded tangentially.
+    SlidingDepthOverThickness,
     /// The rung meets the tolerance nowhere in the study.
     Rung,
 }
@@ -61,6 +65,7 @@ impl Limit {
         match self {
             Limit::ContactRadiusOverThickness => "a_over_h",
             Limit::DepthOverThickness => "depth_over_h",
+            Limit::SlidingDepthOverThickness => "sliding_depth_over_h",
             Limit::Rung => "rung",
         }
     }
@@ -127,6 +132,15 @@ impl std::fmt::Display for Validity {
                 f,
                 "indentation depth over gel thickness {value:.3} is past the rung's {bound:.3}"
             ),
+            Validity::Outside {
+                limit: Limit::SlidingDepthOverThickness,
+                value,
+                bound,
+            } => write!(
+                f,
+                "indentation depth over gel thickness {value:.3} is past the rung's {bound:.3} \
+                 for a sliding contact"
+            ),
         }
     }
 }
@@ -146,6 +160,8 @@ pub struct RungLimits {
     /// Largest indentation depth over gel thickness where it holds (∞ when the table has no
     /// depth sweep of the rung).
     pub max_depth_over_h: f64,
+    /// The same for a contact loaded tangentially (the press-and-slide rows count too).
+    pub max_sliding_depth_over_h: f64,
     /// The rung's smallest studied error on the finest grid (what [`Limit::Rung`] reports).
     pub best_rel_error: f64,
 }
@@ -181,12 +197,13 @@ impl RungLimits {
             .map(|r| r.depth_over_h)
             .collect();
         depths.sort_by(f64::total_cmp);
-        let max_depth_over_h = match depths.first() {
+        depths.dedup();
+        let max_depth = |sliding: bool| match depths.first() {
             None => f64::INFINITY,
             Some(&shallowest) => depths
                 .iter()
                 .copied()
-                .take_while(|&d| table.depth_error(rung, d, friction) <= tolerance)
+                .take_while(|&d| table.depth_error(rung, d, friction, sliding) <= tolerance)
                 .last()
                 .unwrap_or(shallowest),
         };
@@ -195,14 +212,22 @@ impl RungLimits {
             tolerance,
             friction,
             max_a_over_h,
-            max_depth_over_h,
+            max_depth_over_h: max_depth(false),
+            max_sliding_depth_over_h: max_depth(true),
             best_rel_error,
         }
     }
 
     /// Whether a frame with contact radius over gel thickness `a_over_h` and indentation depth
-    /// over gel thickness `depth_over_h` lies within the limits (a frame out of contact does).
-    pub fn check(&self, in_contact: bool, a_over_h: f64, depth_over_h: f64) -> Validity {
+    /// over gel thickness `depth_over_h`, `sliding` (loaded tangentially) or not, lies within the
+    /// limits (a frame out of contact does).
+    pub fn check(
+        &self,
+        in_contact: bool,
+        a_over_h: f64,
+        depth_over_h: f64,
+        sliding: bool,
+    ) -> Validity {
         if !in_contact {
             return Validity::Ok;
         }
@@ -218,6 +243,13 @@ impl RungLimits {
                 limit: Limit::DepthOverThickness,
                 value: depth_over_h,
                 bound: self.max_depth_over_h,
+            };
+        }
+        if sliding && depth_over_h > self.max_sliding_depth_over_h {
+            return Validity::Outside {
+                limit: Limit::SlidingDepthOverThickness,
+                value: depth_over_h,
+                bound: self.max_sliding_depth_over_h,
             };
         }
         if a_over_h > max_a_over_h {
@@ -243,6 +275,7 @@ mod tests {
             a_over_h,
             depth_over_h: depth,
             friction: 0.0,
+            slide_over_a: 0.0,
             rel_error: e,
             ms_per_frame: 1.0,
         }
@@ -250,7 +283,8 @@ mod tests {
 
     /// The limits are read on the finest grid, stop at the first studied point that misses
     /// (even if a later one meets again), ignore the rung's refusals, and depth follows the
-    /// sweep's hard-side rule (the worst error up to the query).
+    /// sweep's hard-side rule (the worst error up to the query); a slide's row bounds only
+    /// sliding frames.
     #[test]
     fn limits_follow_the_table() {
         use SolverKind::Halfspace as H;
@@ -266,29 +300,44 @@ mod tests {
                 row(H, 8.0, 0.4, 0.1, 0.01),
                 row(H, 12.0, 0.6, 0.3, 0.019),
                 row(H, 16.0, 0.8, 0.5, 0.025),
+                TableRow {
+                    slide_over_a: 0.5,
+                    ..row(H, 8.0, 0.4, 0.1, 0.03)
+                },
             ],
         };
         let limits = RungLimits::of(&table, H, 0.02, 0.0);
         assert_eq!(limits.max_a_over_h, Some(0.1));
         assert_eq!(limits.max_depth_over_h, 0.3);
+        assert_eq!(limits.max_sliding_depth_over_h, 0.01);
         assert_eq!(limits.best_rel_error, 0.01);
-        assert!(limits.check(true, 0.1, 0.3).is_ok());
-        assert!(limits.check(false, 5.0, 5.0).is_ok());
+        assert!(limits.check(true, 0.1, 0.3, false).is_ok());
+        assert!(limits.check(false, 5.0, 5.0, true).is_ok());
+        assert!(limits.check(true, 0.1, 0.01, true).is_ok());
         assert_eq!(
-            limits.check(true, 0.2, 0.3),
+            limits.check(true, 0.1, 0.05, true),
+            Validity::Outside {
+                limit: Limit::SlidingDepthOverThickness,
+                value: 0.05,
+                bound: 0.01
+            }
+        );
+        assert_eq!(
+            limits.check(true, 0.2, 0.3, false),
             Validity::Outside {
                 limit: Limit::ContactRadiusOverThickness,
                 value: 0.2,
                 bound: 0.1
             }
         );
-        assert_eq!(limits.check(true, 0.2, 0.31).name(), "depth_over_h");
+        assert_eq!(limits.check(true, 0.2, 0.31, true).name(), "depth_over_h");
         let loose = RungLimits::of(&table, H, 0.04, 0.0);
         assert_eq!(loose.max_a_over_h, Some(1.0));
         assert_eq!(loose.max_depth_over_h, 0.5);
+        assert_eq!(loose.max_sliding_depth_over_h, 0.5);
         let strict = RungLimits::of(&table, H, 0.001, 0.0);
         assert_eq!(strict.max_a_over_h, None);
-        assert_eq!(strict.check(true, 0.0, 0.0).name(), "rung");
-        assert!(strict.check(false, 0.0, 0.0).is_ok());
+        assert_eq!(strict.check(true, 0.0, 0.0, false).name(), "rung");
+        assert!(strict.check(false, 0.0, 0.0, false).is_ok());
     }
 }

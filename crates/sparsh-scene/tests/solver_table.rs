@@ -4,30 +4,33 @@
 use sparsh_scene::SolverKind;
 use sparsh_scene::auto::{AutoChoice, SolverTable, choose, most_accurate};
 
-const TABLE: &str = "rung,a_over_cell,a_over_h,depth_over_h,friction,rel_error,ms_per_frame
-halfspace,5,0.002,0,0,0.03,1
-halfspace,10,0.002,0,0,0.01,4
-halfspace,10,0.5,0,0,0.4,4
-layered,5,0.002,0,0,0.03,2
-layered,5,0.5,0,0,0.05,2
-layered,10,0.002,0,0,0.01,8
-layered,10,0.5,0,0,0.012,8
-geometric,5,0.002,0,0,inf,0.1
-layered,3,0.5,0.1,0,0.01,8
-layered,3,0.8,0.3,0,0.015,8
-layered,3,0.9,0.4,0,0.018,8
-layered,3,0.5,0.1,1,0.012,8
-layered,3,0.8,0.3,1,0.035,8
-layered,3,0.9,0.4,1,0.001,8
-fem,10,0.5,0,0,0.008,2000
-fem,3,0.8,0.3,0,0.004,2000
-fem,3,0.8,0.3,1,0.004,2000
+const TABLE: &str =
+    "rung,a_over_cell,a_over_h,depth_over_h,friction,slide_over_a,rel_error,ms_per_frame
+halfspace,5,0.002,0,0,0,0.03,1
+halfspace,10,0.002,0,0,0,0.01,4
+halfspace,10,0.5,0,0,0,0.4,4
+layered,5,0.002,0,0,0,0.03,2
+layered,5,0.5,0,0,0,0.05,2
+layered,10,0.002,0,0,0,0.01,8
+layered,10,0.5,0,0,0,0.012,8
+geometric,5,0.002,0,0,0,inf,0.1
+layered,3,0.5,0.1,0,0,0.01,8
+layered,3,0.8,0.3,0,0,0.015,8
+layered,3,0.9,0.4,0,0,0.018,8
+layered,3,0.5,0.1,1,0,0.012,8
+layered,3,0.8,0.3,1,0,0.035,8
+layered,3,0.9,0.4,1,0,0.001,8
+fem,10,0.5,0,0,0,0.008,2000
+fem,3,0.8,0.3,0,0,0.004,2000
+fem,3,0.8,0.3,1,0,0.004,2000
+layered,3,0.8,0.3,1,0.5,0.05,8
+fem,3,0.8,0.3,1,0.5,0.005,2000
 ";
 
 #[test]
 fn table_parses_and_round_trips() {
     let table = SolverTable::parse(TABLE).unwrap();
-    assert_eq!(table.rows.len(), 17);
+    assert_eq!(table.rows.len(), 19);
     assert!(table.rows[7].rel_error.is_infinite());
     assert_eq!(SolverTable::parse(&table.to_csv()).unwrap(), table);
     for (bad, why) in [
@@ -36,34 +39,46 @@ fn table_parses_and_round_trips() {
             "rung,a_over_cell,a_over_h,rel_error,ms_per_frame\nlayered,1,1,1,1\n",
             "first row",
         ),
-        // the header of tables written before the friction column
+        // the headers of tables written before the friction and the slide columns
         (
             "rung,a_over_cell,a_over_h,depth_over_h,rel_error,ms_per_frame\nlayered,1,1,0,1,1\n",
             "first row",
         ),
         (
-            "rung,a_over_cell,a_over_h,depth_over_h,friction,rel_error,ms_per_frame\nbogus,1,1,0,0,1,1\n",
+            "rung,a_over_cell,a_over_h,depth_over_h,friction,rel_error,ms_per_frame\nlayered,1,1,0,0,1,1\n",
+            "first row",
+        ),
+        (
+            "rung,a_over_cell,a_over_h,depth_over_h,friction,slide_over_a,rel_error,ms_per_frame\nbogus,1,1,0,0,0,1,1\n",
             "unknown solver",
         ),
         (
-            "rung,a_over_cell,a_over_h,depth_over_h,friction,rel_error,ms_per_frame\nlayered,1,1,0,0,x,1\n",
+            "rung,a_over_cell,a_over_h,depth_over_h,friction,slide_over_a,rel_error,ms_per_frame\nlayered,1,1,0,0,0,x,1\n",
             "not a number",
         ),
         (
-            "rung,a_over_cell,a_over_h,depth_over_h,friction,rel_error,ms_per_frame\nlayered,0,1,0,0,1,1\n",
+            "rung,a_over_cell,a_over_h,depth_over_h,friction,slide_over_a,rel_error,ms_per_frame\nlayered,0,1,0,0,0,1,1\n",
             "must be > 0",
         ),
         (
-            "rung,a_over_cell,a_over_h,depth_over_h,friction,rel_error,ms_per_frame\nlayered,1,1,-1,0,1,1\n",
+            "rung,a_over_cell,a_over_h,depth_over_h,friction,slide_over_a,rel_error,ms_per_frame\nlayered,1,1,-1,0,0,1,1\n",
             "depth_over_h",
         ),
         (
-            "rung,a_over_cell,a_over_h,depth_over_h,friction,rel_error,ms_per_frame\nlayered,1,1,0.1,-1,1,1\n",
+            "rung,a_over_cell,a_over_h,depth_over_h,friction,slide_over_a,rel_error,ms_per_frame\nlayered,1,1,0.1,-1,0,1,1\n",
             "friction",
         ),
         (
-            "rung,a_over_cell,a_over_h,depth_over_h,friction,rel_error,ms_per_frame\nlayered,1,1\n",
-            "7 fields",
+            "rung,a_over_cell,a_over_h,depth_over_h,friction,slide_over_a,rel_error,ms_per_frame\nlayered,1,1\n",
+            "8 fields",
+        ),
+        (
+            "rung,a_over_cell,a_over_h,depth_over_h,friction,slide_over_a,rel_error,ms_per_frame\nlayered,1,1,0.1,1,-0.5,1,1\n",
+            "slide_over_a",
+        ),
+        (
+            "rung,a_over_cell,a_over_h,depth_over_h,friction,slide_over_a,rel_error,ms_per_frame\nlayered,1,1,0,1,0.5,1,1\n",
+            "needs depth_over_h > 0",
         ),
     ] {
         let err = SolverTable::parse(bad).unwrap_err();
@@ -97,6 +112,7 @@ fn choice(solver: SolverKind, stride: usize, error: f64, ms: f64) -> AutoChoice 
         contact_radius_mm: 1.0,
         a_over_h: 0.1,
         depth_over_h: 0.01,
+        sliding: false,
         predicted_rel_error: error,
         predicted_ms_per_frame: ms,
     }
@@ -130,7 +146,7 @@ fn choice_is_the_cheapest_that_meets_the_tolerance() {
 }
 
 /// The shipped table and what the study writes are plain CSV: the `csv` crate's default reader
-/// takes the header from the first line and every row has the header's seven fields.
+/// takes the header from the first line and every row has the header's eight fields.
 #[test]
 fn tables_read_with_default_csv_readers() {
     let written = SolverTable::parse(TABLE).unwrap().to_csv();
@@ -145,6 +161,7 @@ fn tables_read_with_default_csv_readers() {
                 "a_over_h",
                 "depth_over_h",
                 "friction",
+                "slide_over_a",
                 "rel_error",
                 "ms_per_frame"
             ]
@@ -152,7 +169,7 @@ fn tables_read_with_default_csv_readers() {
         let rows: Vec<csv::StringRecord> = reader.records().map(|r| r.unwrap()).collect();
         assert!(!rows.is_empty());
         for r in &rows {
-            assert_eq!(r.len(), 7, "{r:?}");
+            assert_eq!(r.len(), 8, "{r:?}");
             r[1].parse::<f64>().unwrap();
         }
     }
@@ -165,7 +182,9 @@ fn a_deep_press_takes_the_finite_elements() {
     // 0.3, where only the finite elements hold.
     let table = SolverTable::parse(TABLE).unwrap();
     let layered =
-        |depth: f64, friction: f64| table.depth_error(SolverKind::Layered, depth, friction);
+        |depth: f64, friction: f64| table.depth_error(SolverKind::Layered, depth, friction, false);
+    let sliding =
+        |depth: f64, friction: f64| table.depth_error(SolverKind::Layered, depth, friction, true);
     // Shallower than the sweep: the small-strain rows decide.
     assert_eq!(layered(0.05, 1.0), 0.0);
     assert_eq!(layered(0.1, 1.0), 0.0);
@@ -178,19 +197,30 @@ fn a_deep_press_takes_the_finite_elements() {
     assert_eq!(layered(0.15, 0.5), 0.035);
     assert_eq!(layered(0.15, 2.0), 0.035);
     assert!(layered(0.5, 0.0).is_infinite());
-    assert_eq!(table.depth_error(SolverKind::Halfspace, 0.5, 1.0), 0.0);
+    // A sliding contact is held to the slides' rows as well, at their frictions only.
+    assert_eq!(sliding(0.1, 1.0), 0.0);
+    assert_eq!(sliding(0.15, 1.0), 0.05);
+    assert_eq!(sliding(0.35, 1.0), 0.05);
+    assert_eq!(sliding(0.15, 0.0), 0.015);
+    assert_eq!(
+        table.depth_error(SolverKind::Halfspace, 0.5, 1.0, true),
+        0.0
+    );
     assert_eq!(table.swept_frictions(), [0.0, 1.0]);
     let mut sensor = sparsh_scene::SensorConfig::preset("digit").unwrap();
     (sensor.width_px, sensor.height_px, sensor.mm_per_px) = (100, 100, 0.1);
-    let pick = |depth_mm: f64, friction: f64| {
+    let choose_for = |depth_mm: f64, friction: f64, sliding: bool, tolerance: f64| {
         let gel = sparsh_scene::Gel {
             thickness_mm: 2.0,
             friction,
             ..sparsh_scene::Gel::default()
         };
-        let all = sparsh_scene::auto::candidates(&table, &sensor, &gel, 1.0, depth_mm, 0.02);
+        let all = sparsh_scene::auto::candidates(
+            &table, &sensor, &gel, 1.0, depth_mm, sliding, tolerance,
+        );
         choose(&all).unwrap()
     };
+    let pick = |depth_mm: f64, friction: f64| choose_for(depth_mm, friction, false, 0.02);
     let shallow = pick(0.1, 1.0);
     assert_eq!(shallow.solver, SolverKind::Layered);
     let deep = pick(0.5, 1.0);
@@ -199,4 +229,39 @@ fn a_deep_press_takes_the_finite_elements() {
     // Frictionless, the same press stays on the layered rung.
     let slippery = pick(0.5, 0.0);
     assert_eq!(slippery.solver, SolverKind::Layered, "{slippery:?}");
+    // At 4 % the press holds on the layered rung; the same depth sliding needs the elements.
+    let press = choose_for(0.5, 1.0, false, 0.04);
+    assert_eq!(press.solver, SolverKind::Layered, "{press:?}");
+    let slide = choose_for(0.5, 1.0, true, 0.04);
+    assert_eq!(slide.solver, SolverKind::Fem, "{slide:?}");
+    assert!(slide.sliding && slide.meets_tolerance());
+}
+
+/// `auto` reads the slides' rows only for a trajectory that moves the indenter along the gel
+/// while it is pressed in: a press, a press moved sideways only above the gel, and a press
+/// that then slides (or turns).
+#[test]
+fn auto_knows_when_a_trajectory_slides() {
+    let scene = |keyframes: &str| {
+        let text = format!(
+            "seed = 1\nsolver = \"auto\"\n[sensor]\npreset = \"digit\"\n[gel]\nthickness_mm = 3.0\n\
+             friction = 1.0\n[indenter]\nshape = \"sphere\"\nradius_mm = 6.0\n{keyframes}"
+        );
+        let path = std::path::Path::new("slide.toml");
+        let scene = sparsh_scene::Scene::parse(path, text).unwrap();
+        scene.auto.unwrap().sliding
+    };
+    let keyframe = |t: f64, x: f64, z: f64, turn: f64| {
+        format!(
+            "[[trajectory]]\ntime_s = {t}\nposition_mm = [{x}, 0.0, {z}]\nrotation_deg = [0.0, 0.0, {turn}]\n"
+        )
+    };
+    let press = keyframe(0.0, 0.0, 0.5, 0.0) + &keyframe(0.5, 0.0, -0.2, 0.0);
+    assert!(!scene(&press));
+    let over_then_press = keyframe(0.0, -1.0, 0.5, 0.0)
+        + &keyframe(0.2, 0.0, 0.5, 0.0)
+        + &keyframe(0.5, 0.0, -0.2, 0.0);
+    assert!(!scene(&over_then_press));
+    assert!(scene(&(press.clone() + &keyframe(1.0, 1.0, -0.2, 0.0))));
+    assert!(scene(&(press + &keyframe(1.0, 0.0, -0.2, 10.0))));
 }

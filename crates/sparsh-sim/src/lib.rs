@@ -18,6 +18,10 @@ use sparsh_scene::{
     FrameTarget, GapField, Grid, Pose, RungLimits, Scene, SolverKind, Validity, ValidityPolicy,
 };
 
+/// Tangential force over the friction bound μ F_z above which a frame counts as sliding for
+/// its rung's validity (the press-and-slide sweep's rows bound it then).
+pub const SLIDING_LOAD: f64 = 0.05;
+
 /// Why a frame could not be simulated.
 #[derive(Debug, thiserror::Error)]
 pub enum SimError {
@@ -315,12 +319,21 @@ impl Mechanics {
         )
     }
 
+    /// Whether a solved frame is loaded tangentially: its tangential force is above
+    /// [`SLIDING_LOAD`] of the friction bound μ F_z (a press of a symmetric indenter carries
+    /// none, a slide in gross slip all of it), so the press-and-slide rows bound its error.
+    fn frame_sliding(scene: &Scene, solved: &Solved) -> bool {
+        let [fx, fy, fz] = solved.fields.force_n;
+        fx.hypot(fy) > SLIDING_LOAD * scene.gel.friction * fz.abs()
+    }
+
     fn validity(&self, scene: &Scene, solved: &Solved) -> Validity {
         let (a_over_h, depth_over_h) = Mechanics::frame_ratios(scene, solved);
         self.limits.check(
             solved.fields.contact.contains(&true),
             a_over_h,
             depth_over_h,
+            Mechanics::frame_sliding(scene, solved),
         )
     }
 
@@ -335,6 +348,7 @@ impl Mechanics {
         solved: &Solved,
     ) -> Result<Option<Solved>, SimError> {
         let (a_over_h, depth_over_h) = Mechanics::frame_ratios(scene, solved);
+        let sliding = Mechanics::frame_sliding(scene, solved);
         let higher: Vec<SolverKind> = SolverKind::ALL
             .into_iter()
             .skip_while(|&k| k != self.rung)
@@ -353,7 +367,11 @@ impl Mechanics {
         };
         let rung = higher
             .into_iter()
-            .find(|&k| limits_of(k).check(true, a_over_h, depth_over_h).is_ok())
+            .find(|&k| {
+                limits_of(k)
+                    .check(true, a_over_h, depth_over_h, sliding)
+                    .is_ok()
+            })
             .unwrap_or(top);
         let limits = limits_of(rung);
         let mut solver = solver_for(rung, &scene.gel, scene.mechanics_grid());
