@@ -87,6 +87,66 @@ fn warn_policy_counts_and_labels_every_frame() {
     }
 }
 
+/// A press and the same press then slid, on the layered rung with μ = 1: the press carries no
+/// tangential load and the slide does (`sparsh_sim::loaded_tangentially`, what decides whether
+/// a frame is held to the study's press-and-slide rows), and every frame's validity label is
+/// the rung's limits read with that flag.
+#[test]
+fn a_slide_loads_the_contact_tangentially_and_a_press_does_not() {
+    use sparsh_scene::auto::SolverTable;
+    use sparsh_scene::{RungLimits, SolverKind};
+    let limits = RungLimits::of(SolverTable::builtin(), SolverKind::Layered, 0.02, 1.0);
+    // 2 mm gel, the sphere pressed 0.15 mm (δ/h 0.075), then slid about 0.8 mm over five frames
+    let scene = r#"
+solver = "layered"
+[sensor]
+preset = "digit"
+width_px = 64
+height_px = 48
+mm_per_px = 0.12
+fps = 10.0
+[gel]
+thickness_mm = 2.0
+friction = 1.0
+[indenter]
+shape = "sphere"
+radius_mm = 5.0
+[[trajectory]]
+time_s = 0.0
+position_mm = [0.0, 0.0, -0.15]
+[[trajectory]]
+time_s = 0.6
+position_mm = [1.0, 0.0, -0.15]
+"#;
+    let tmp = tempfile::tempdir().unwrap();
+    let scene = write_scene(tmp.path(), scene);
+    let ds = tmp.path().join("ds");
+    let out = generate(&scene, &ds, &["--quiet"]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let labels = std::fs::read_to_string(ds.join("labels.jsonl")).unwrap();
+    let rows: Vec<serde_json::Value> = labels
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    assert_eq!(rows.len(), 6);
+    let loaded: Vec<bool> = rows
+        .iter()
+        .map(|row| {
+            let f = [0, 1, 2].map(|i| row["force_n"][i].as_f64().unwrap());
+            sparsh_sim::loaded_tangentially(f, 1.0)
+        })
+        .collect();
+    assert!(!loaded[0], "the press: {}", rows[0]);
+    // a slide of about a contact radius loads every frame after the press
+    assert!(loaded[1..].iter().all(|&l| l), "{labels}");
+    for (row, &sliding) in rows.iter().zip(&loaded) {
+        let a_over_h =
+            (row["contact_area_mm2"].as_f64().unwrap() / std::f64::consts::PI).sqrt() / 2.0;
+        let expected = limits.check(true, a_over_h, 0.15 / 2.0, sliding);
+        assert_eq!(row["validity"], expected.name(), "{row}");
+    }
+}
+
 #[test]
 fn families_read_tolerance_and_validity() {
     let tmp = tempfile::tempdir().unwrap();

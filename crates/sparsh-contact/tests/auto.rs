@@ -132,29 +132,51 @@ fn auto_meets_its_tolerance_on_held_out_scenes_and_is_never_dearer() {
     }
 }
 
-/// The quickstart's press under its `solver = "auto"`: a 6 mm-radius sphere 0.3 mm into a 3 mm
-/// gel (δ/h = 0.1) with μ = 1 gets the layered rung, whose studied depth limit with friction is
-/// δ/h = 0.1 at 2 %; the same press 0.85 mm deep (δ/h = 0.28) gets the finite elements with
+/// The quickstart under `solver = "auto"`: its press alone, a 6 mm-radius sphere 0.3 mm into a
+/// 3 mm gel (δ/h = 0.1) with μ = 1, gets the layered rung on the grid the scene names, whose
+/// studied depth limit for a press with friction is δ/h = 0.1 at 2 %, and with its slide (which
+/// `auto` sees) the layered rung at the 5 % the scene states; the same press 0.85 mm deep (δ/h = 0.28) gets the finite elements with
 /// friction, where a stuck surface at finite strain stiffens the press beyond the boundary
 /// elements' linear coupling, and the layered rung again without friction (its frictionless
 /// limit being 0.3); 1 mm deep (δ/h = 0.33) the finite elements either way, and 0.1 mm deep a
 /// boundary-element rung.
 #[test]
 fn auto_takes_the_layer_for_the_quickstart_and_the_finite_elements_deeper() {
-    let quickstart = std::fs::read_to_string(
+    let shipped = std::fs::read_to_string(
         Path::new(env!("CARGO_MANIFEST_DIR")).join("../../scenes/quickstart.toml"),
     )
     .expect("quickstart scene");
-    assert!(quickstart.contains("solver = \"auto\""));
-    assert!(quickstart.contains("friction = 1.0"));
-    let scene = Scene::parse(Path::new("quickstart.toml"), quickstart.clone()).expect("scene");
-    let choice = scene.auto.expect("auto records its choice");
+    // The quick start names the rung and grid that `auto` takes for its press alone, and states
+    // the tolerance its slide needs.
+    let named = "solver = \"layered\"\nmechanics_stride = 2\ntolerance = 0.05\n";
+    assert!(shipped.contains(named) && shipped.contains("friction = 1.0"));
+    let quickstart = shipped.replace(named, "solver = \"auto\"\n");
+    let scene_with = |text: &str| Scene::parse(Path::new("quickstart.toml"), text.to_string());
+    let press_alone =
+        scene_with(&quickstart.replace("[1.0, 0.0, -0.3]", "[-1.0, 0.0, -0.3]")).expect("scene");
+    let choice = press_alone.auto.expect("auto records its choice");
+    assert!(!choice.sliding, "{choice:?}");
     assert_eq!(
-        scene.solver,
-        sparsh_scene::SolverKind::Layered,
+        (press_alone.solver, press_alone.mechanics_stride),
+        (sparsh_scene::SolverKind::Layered, 2),
         "{choice:?}"
     );
     assert!((choice.depth_over_h - 0.3 / 3.0).abs() < 0.02, "{choice:?}");
+    // With its slide, `auto` knows the trajectory slides; at the scene's 5 % the layer holds.
+    let sliding = scene_with(&quickstart).expect("scene");
+    let choice = sliding.auto.expect("auto records its choice");
+    assert!(choice.sliding, "{choice:?}");
+    let loose = scene_with(&quickstart.replace(
+        "solver = \"auto\"\n",
+        "solver = \"auto\"\ntolerance = 0.05\n",
+    ))
+    .expect("scene");
+    assert_eq!(
+        loose.solver,
+        sparsh_scene::SolverKind::Layered,
+        "{:?}",
+        loose.auto
+    );
     let pressed = |depth: &str, friction: &str| {
         let text = quickstart
             .replace("[-1.0, 0.0, -0.3]", &format!("[-1.0, 0.0, -{depth}]"))

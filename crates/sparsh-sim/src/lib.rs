@@ -22,6 +22,15 @@ use sparsh_scene::{
 /// its rung's validity (the press-and-slide sweep's rows bound it then).
 pub const SLIDING_LOAD: f64 = 0.05;
 
+/// Whether a frame with force `force_n` (N) on a gel of friction coefficient `friction` is
+/// loaded tangentially: its tangential force is above [`SLIDING_LOAD`] of the friction bound
+/// μ F_z (a press of a symmetric indenter carries none, a slide in gross slip all of it), so the
+/// press-and-slide rows of the solver table bound its error.
+pub fn loaded_tangentially(force_n: [f64; 3], friction: f64) -> bool {
+    let [fx, fy, fz] = force_n;
+    fx.hypot(fy) > SLIDING_LOAD * friction * fz.abs()
+}
+
 /// Why a frame could not be simulated.
 #[derive(Debug, thiserror::Error)]
 pub enum SimError {
@@ -319,12 +328,8 @@ impl Mechanics {
         )
     }
 
-    /// Whether a solved frame is loaded tangentially: its tangential force is above
-    /// [`SLIDING_LOAD`] of the friction bound μ F_z (a press of a symmetric indenter carries
-    /// none, a slide in gross slip all of it), so the press-and-slide rows bound its error.
     fn frame_sliding(scene: &Scene, solved: &Solved) -> bool {
-        let [fx, fy, fz] = solved.fields.force_n;
-        fx.hypot(fy) > SLIDING_LOAD * scene.gel.friction * fz.abs()
+        loaded_tangentially(solved.fields.force_n, scene.gel.friction)
     }
 
     fn validity(&self, scene: &Scene, solved: &Solved) -> Validity {
@@ -595,6 +600,18 @@ pub fn upsample(values: &[f64], coarse: Grid, fine: Grid) -> Vec<f64> {
 
 #[cfg(test)]
 mod tests {
+
+    /// A press carries no tangential load, a slide in gross slip carries μF_z; the threshold is
+    /// 5 % of the friction bound, whichever way the force points.
+    #[test]
+    fn tangential_load_is_read_against_the_friction_bound() {
+        assert!(!loaded_tangentially([0.0, 0.0, 1.0], 1.0));
+        assert!(!loaded_tangentially([0.03, 0.04, 1.0], 1.0));
+        assert!(loaded_tangentially([0.03, 0.045, 1.0], 1.0));
+        assert!(loaded_tangentially([-0.5, 0.0, 0.5], 1.0));
+        assert!(!loaded_tangentially([0.0, 0.0, 1.0], 0.0));
+        assert!(loaded_tangentially([0.0, -0.06, 1.0], 1.0));
+    }
     use super::*;
 
     /// Bilinear interpolation reproduces a linear field exactly between the outermost centres.
