@@ -355,12 +355,7 @@ pub fn depth_estimate_mm(
             .radius_mm
             .map_or(0.0, |r| contact_radius_mm * contact_radius_mm / r);
     }
-    let image = sensor.grid();
-    let coarse = Grid {
-        nx: image.nx.div_ceil(4),
-        ny: image.ny.div_ceil(4),
-        cell_mm: image.cell_mm * 4.0,
-    };
+    let (image, coarse) = (sensor.grid(), coarse_grid(sensor));
     let depth = |grid: Grid, f: &FrameTarget| {
         GapField::cast(indenter, &f.pose, grid)
             .gap_mm
@@ -375,6 +370,17 @@ pub fn depth_estimate_mm(
         .map_or(0.0, |(_, f)| depth(image, f))
 }
 
+/// The sensor's image in cells of 4 × 4 pixels: where the estimates below cast every frame
+/// before looking closer.
+fn coarse_grid(sensor: &SensorConfig) -> Grid {
+    let image = sensor.grid();
+    Grid {
+        nx: image.nx.div_ceil(4),
+        ny: image.ny.div_ceil(4),
+        cell_mm: image.cell_mm * 4.0,
+    }
+}
+
 /// Whether the indenter moves along the gel while pressed into it: two consecutive frames that
 /// both reach below the gel's surface (cast on the coarse grid of [`depth_estimate_mm`]; under
 /// force control, both loaded) with the indenter moved in x or y or turned about z between them.
@@ -383,12 +389,7 @@ pub fn sliding_estimate(
     frames: &[FrameTarget],
     sensor: &SensorConfig,
 ) -> bool {
-    let image = sensor.grid();
-    let coarse = Grid {
-        nx: image.nx.div_ceil(4),
-        ny: image.ny.div_ceil(4),
-        cell_mm: image.cell_mm * 4.0,
-    };
+    let coarse = coarse_grid(sensor);
     let pressed = |f: &FrameTarget| match f.normal_force_n {
         Some(force) => force > 0.0,
         None => GapField::cast(indenter, &f.pose, coarse)
@@ -434,12 +435,7 @@ pub fn contact_radius_estimate_mm(
             ),
         };
     }
-    let image = sensor.grid();
-    let coarse = Grid {
-        nx: image.nx.div_ceil(4),
-        ny: image.ny.div_ceil(4),
-        cell_mm: image.cell_mm * 4.0,
-    };
+    let (image, coarse) = (sensor.grid(), coarse_grid(sensor));
     let touching = |gap: &GapField| gap.gap_mm.iter().filter(|&&g| g < 0.0).count();
     let deepest = frames
         .iter()
