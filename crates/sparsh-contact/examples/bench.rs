@@ -19,6 +19,14 @@
 //! warm start only; `fem [frames] default`: the default rung alone beside the layered one;
 //! `fem [frames] [warm|default|both] [friction]`: the same press at another friction
 //! coefficient (μ = 0: the frictionless press the layered rung's coupling is measured against).
+//!
+//! `cargo run --release --example bench -- fem-slide [friction] [depth/thickness]
+//! [elements per radius]`: the study's press-and-slide reference (a 5 mm sphere pressed into a
+//! 2 mm incompressible layer, then slid half its footprint radius in 5 frames, on cells of
+//! 0.05 mm; defaults μ = 1.5, δ/h = 0.05, 12 elements per radius), with the multiplier updates
+//! mixed by Anderson acceleration and plain (a fifth argument `Anderson` or `plain`: that one
+//! alone): seconds, multiplier updates and Newton iterations
+//! per frame, and the forces.
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Instant;
@@ -114,6 +122,13 @@ fn main() {
             _ => FemVariants::All,
         };
         deep_press(frames, variants, friction);
+        return;
+    }
+    if args.get(1).map(String::as_str) == Some("fem-slide") {
+        let number =
+            |k: usize, default: f64| args.get(k).map_or(default, |v| v.parse().expect("number"));
+        let only = args.get(5).map(String::as_str);
+        press_and_slide(number(2, 1.5), number(3, 0.05), number(4, 12.0), only);
         return;
     }
     let kind = match args.get(1).map(String::as_str) {
@@ -446,6 +461,82 @@ fn time_frames(
 }
 
 /// Displacement control, the indenter not moving sideways.
+/// The study's press-and-slide reference with and without Anderson mixing of the multiplier
+/// updates (see the module comment).
+fn press_and_slide(friction: f64, depth_over_h: f64, elements_per_radius: f64, only: Option<&str>) {
+    let (radius, h, cell) = (5.0, 2.0, 0.05);
+    let depth = depth_over_h * h;
+    let footprint = (2.0 * radius * depth - depth * depth).sqrt();
+    let slide = 0.5 * footprint;
+    let box_mm = 3.2 * footprint + 1.0 + 2.0 * slide;
+    let n = ((box_mm / cell).round() as usize / 2 * 2 + 1).max(9);
+    let grid = Grid {
+        nx: n,
+        ny: n,
+        cell_mm: cell,
+    };
+    let gel = Gel {
+        youngs_modulus_kpa: 300.0,
+        poisson_ratio: 0.5,
+        thickness_mm: h,
+        friction,
+    };
+    let indenter = Indenter::Sphere { radius_mm: radius };
+    let poses: Vec<Pose> = (0..=5)
+        .map(|k| Pose {
+            position_mm: DVec3::new(slide * k as f64 / 5.0, 0.0, -depth),
+            rotation_deg: DVec3::ZERO,
+        })
+        .collect();
+    println!(
+        "press and slide: R = 5 mm sphere {depth} mm into a 2 mm layer (ν = 0.5, μ = {friction}), \
+         slid {slide:.3} mm in 5 frames, {n} × {n} cells of {cell} mm, {elements_per_radius} elements per radius"
+    );
+    println!("| multiplier update | frame | s | updates | Newton iterations | F_x (N) | F_z (N) |");
+    println!("|---|---|---|---|---|---|---|");
+    let mut totals = Vec::new();
+    for (label, depth) in [("Anderson, 5", 5), ("plain", 0)] {
+        if only.is_some_and(|o| !label.starts_with(o)) {
+            continue;
+        }
+        let mut fem = Fem::new(gel, grid).with_options(FemOptions {
+            elements_per_radius,
+            anderson_depth: depth,
+            ..FemOptions::default()
+        });
+        let mut previous: Option<Pose> = None;
+        let mut total = 0.0;
+        for (frame, pose) in poses.iter().enumerate() {
+            let gap = GapField::cast(&indenter, pose, grid);
+            let shift = match &previous {
+                Some(p) => rigid_shift_mm(p, pose, &gap),
+                None => vec![[0.0; 2]; grid.len()],
+            };
+            previous = Some(*pose);
+            let clock = Instant::now();
+            let solved = fem.solve(&pressed(&gap, &shift));
+            let seconds = clock.elapsed().as_secs_f64();
+            total += seconds;
+            let stats = fem.stats();
+            let forces = match solved {
+                Ok(f) => format!("{:.4} | {:.4}", f.force_n[0], f.force_n[2]),
+                Err(e) => format!("{e} | –"),
+            };
+            println!(
+                "| {label} | {frame} | {seconds:.1} | {} | {} | {forces} |",
+                stats.updates, stats.newton_iterations
+            );
+        }
+        totals.push((label, total));
+    }
+    if let [(a, ta), (b, tb)] = totals[..] {
+        println!(
+            "total: {a} {ta:.1} s, {b} {tb:.1} s ({:.2}× the time)",
+            ta / tb
+        );
+    }
+}
+
 fn pressed<'a>(gap: &'a GapField, still: &'a [[f64; 2]]) -> ContactInput<'a> {
     ContactInput {
         gap,
