@@ -742,10 +742,10 @@ impl Fem {
     ///
     /// From the second update on, the multipliers are the Anderson mixing
     /// ([`FemOptions::anderson_depth`]) of the last updates, kept non-negative, and the bounds μ
-    /// times them; the mixing restarts whenever the pressure change grows. The frame ends on the
-    /// plain update's change, so the converged frame is the same to the tolerance. Failing to
-    /// settle within [`FemOptions::max_updates`] is [`Failure::Updates`], with the last change
-    /// relative to the peak pressure.
+    /// times them; the mixing restarts whenever the norm of the pressure change grows. The frame
+    /// ends on the plain update's change, so the converged frame is the same to the tolerance.
+    /// Failing to settle within [`FemOptions::max_updates`] is [`Failure::Updates`], with the
+    /// last change relative to the peak pressure.
     fn solve_fixed(&mut self, st: &mut State, ind: &Indenter) -> Result<(), Failure> {
         let eps = self.penalty(&st.mesh);
         if self.options.predict_bounds {
