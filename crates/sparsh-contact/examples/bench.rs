@@ -21,12 +21,11 @@
 //! coefficient (μ = 0: the frictionless press the layered rung's coupling is measured against).
 //!
 //! `cargo run --release --example bench -- fem-slide [friction] [depth/thickness]
-//! [elements per radius]`: the study's press-and-slide reference (a 5 mm sphere pressed into a
-//! 2 mm incompressible layer, then slid half its footprint radius in 5 frames, on cells of
-//! 0.05 mm; defaults μ = 1.5, δ/h = 0.05, 12 elements per radius), with the multiplier updates
-//! mixed by Anderson acceleration and plain (a fifth argument `Anderson` or `plain`: that one
-//! alone): seconds, multiplier updates and Newton iterations
-//! per frame, and the forces.
+//! [elements per radius] [Anderson|plain] [frames]`: the study's press-and-slide reference (a
+//! 5 mm sphere pressed into a 2 mm incompressible layer, then slid half its footprint radius in
+//! `frames` frames, on cells of 0.05 mm; defaults μ = 1.5, δ/h = 0.05, 12 elements per radius,
+//! 5 frames), with the multiplier updates mixed by Anderson acceleration and plain (or only the
+//! one named): seconds, multiplier updates and Newton iterations per frame, and the forces.
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Instant;
@@ -128,7 +127,14 @@ fn main() {
         let number =
             |k: usize, default: f64| args.get(k).map_or(default, |v| v.parse().expect("number"));
         let only = args.get(5).map(String::as_str);
-        press_and_slide(number(2, 1.5), number(3, 0.05), number(4, 12.0), only);
+        let frames = number(6, 5.0) as usize;
+        press_and_slide(
+            number(2, 1.5),
+            number(3, 0.05),
+            number(4, 12.0),
+            only,
+            frames,
+        );
         return;
     }
     let kind = match args.get(1).map(String::as_str) {
@@ -463,7 +469,13 @@ fn time_frames(
 /// Displacement control, the indenter not moving sideways.
 /// The study's press-and-slide reference with and without Anderson mixing of the multiplier
 /// updates (see the module comment).
-fn press_and_slide(friction: f64, depth_over_h: f64, elements_per_radius: f64, only: Option<&str>) {
+fn press_and_slide(
+    friction: f64,
+    depth_over_h: f64,
+    elements_per_radius: f64,
+    only: Option<&str>,
+    slide_frames: usize,
+) {
     let (radius, h, cell) = (5.0, 2.0, 0.05);
     let depth = depth_over_h * h;
     let footprint = (2.0 * radius * depth - depth * depth).sqrt();
@@ -482,15 +494,15 @@ fn press_and_slide(friction: f64, depth_over_h: f64, elements_per_radius: f64, o
         friction,
     };
     let indenter = Indenter::Sphere { radius_mm: radius };
-    let poses: Vec<Pose> = (0..=5)
+    let poses: Vec<Pose> = (0..=slide_frames)
         .map(|k| Pose {
-            position_mm: DVec3::new(slide * k as f64 / 5.0, 0.0, -depth),
+            position_mm: DVec3::new(slide * k as f64 / slide_frames as f64, 0.0, -depth),
             rotation_deg: DVec3::ZERO,
         })
         .collect();
     println!(
         "press and slide: R = 5 mm sphere {depth} mm into a 2 mm layer (ν = 0.5, μ = {friction}), \
-         slid {slide:.3} mm in 5 frames, {n} × {n} cells of {cell} mm, {elements_per_radius} elements per radius"
+         slid {slide:.3} mm in {slide_frames} frames, {n} × {n} cells of {cell} mm, {elements_per_radius} elements per radius"
     );
     println!("| multiplier update | frame | s | updates | Newton iterations | F_x (N) | F_z (N) |");
     println!("|---|---|---|---|---|---|---|");
