@@ -21,11 +21,12 @@
 //! coefficient (μ = 0: the frictionless press the layered rung's coupling is measured against).
 //!
 //! `cargo run --release --example bench -- fem-slide [friction] [depth/thickness]
-//! [elements per radius] [Anderson|plain] [frames]`: the study's press-and-slide reference (a
-//! 5 mm sphere pressed into a 2 mm incompressible layer, then slid half its footprint radius in
-//! `frames` frames, on cells of 0.05 mm; defaults μ = 1.5, δ/h = 0.05, 12 elements per radius,
-//! 5 frames), with the multiplier updates mixed by Anderson acceleration and plain (or only the
-//! one named): seconds, multiplier updates and Newton iterations per frame, and the forces.
+//! [elements per radius] [Anderson|plain] [frames] [update cap]`: the study's press-and-slide
+//! reference (a 5 mm sphere pressed into a 2 mm incompressible layer, then slid half its
+//! footprint radius in `frames` frames, on cells of 0.05 mm; defaults μ = 1.5, δ/h = 0.05, 12
+//! elements per radius, 5 frames, the rung's cap on multiplier updates), with the multiplier
+//! updates mixed by Anderson acceleration and plain (or only the one named): seconds,
+//! multiplier updates and Newton iterations per frame, and the forces.
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Instant;
@@ -128,12 +129,13 @@ fn main() {
             |k: usize, default: f64| args.get(k).map_or(default, |v| v.parse().expect("number"));
         let only = args.get(5).map(String::as_str);
         let frames = number(6, 5.0) as usize;
+        let max_updates = number(7, FemOptions::default().max_updates as f64) as usize;
         press_and_slide(
             number(2, 1.5),
             number(3, 0.05),
             number(4, 12.0),
             only,
-            frames,
+            [frames, max_updates],
         );
         return;
     }
@@ -474,7 +476,7 @@ fn press_and_slide(
     depth_over_h: f64,
     elements_per_radius: f64,
     only: Option<&str>,
-    slide_frames: usize,
+    [slide_frames, max_updates]: [usize; 2],
 ) {
     let (radius, h, cell) = (5.0, 2.0, 0.05);
     let depth = depth_over_h * h;
@@ -514,6 +516,7 @@ fn press_and_slide(
         let mut fem = Fem::new(gel, grid).with_options(FemOptions {
             elements_per_radius,
             anderson_depth: depth,
+            max_updates,
             ..FemOptions::default()
         });
         let mut previous: Option<Pose> = None;
