@@ -40,6 +40,10 @@ const SLIDE_OVER_FOOTPRINT: f64 = 0.5;
 /// Frames the press-and-slide sweep's slide is solved in (after the press's one).
 const SLIDE_FRAMES: usize = 5;
 
+/// Multiplier updates a frame of a finite-element reference may take: on the press-and-slide
+/// sweep's δ/h 0.2, μ = 1 slide the last frame needs 106 (the rung's default cap is 100).
+const REFERENCE_MAX_UPDATES: usize = 250;
+
 /// What to run.
 #[derive(Debug, Clone, PartialEq)]
 pub struct StudyOptions {
@@ -797,6 +801,7 @@ pub fn run_study(options: &StudyOptions, progress: &mut dyn FnMut(&str)) -> Stud
         // or the finite-element rung on a grid of half the cell size.
         let fem = FemOptions {
             elements_per_radius: options.reference_elements_per_radius,
+            max_updates: REFERENCE_MAX_UPDATES,
             ..FemOptions::default()
         };
         let fine = match point.case {
