@@ -13,6 +13,25 @@ fn deep_press(policy: &str) -> String {
 
 /// [`deep_press`] with friction coefficient `friction`.
 fn deep_press_with(policy: &str, friction: f64) -> String {
+    layered_scene(
+        policy,
+        friction,
+        2.0,
+        [0.0, 0.0, 0.0],
+        (1.0, [0.0, 0.0, -1.0]),
+    )
+}
+
+/// A sphere of `radius_mm` on a 2 mm gel with friction `friction`, the layered rung under
+/// validity `policy`, moved from `start_mm` at time 0 to `end` = (time s, position mm) on a
+/// 64 × 48 grid of 0.12 mm at 10 frames a second.
+fn layered_scene(
+    policy: &str,
+    friction: f64,
+    radius_mm: f64,
+    start_mm: [f64; 3],
+    (end_s, end_mm): (f64, [f64; 3]),
+) -> String {
     format!(
         r#"
 solver = "layered"
@@ -25,16 +44,16 @@ mm_per_px = 0.12
 fps = 10.0
 [gel]
 thickness_mm = 2.0
-friction = {friction}
+friction = {friction:?}
 [indenter]
 shape = "sphere"
-radius_mm = 2.0
+radius_mm = {radius_mm:?}
 [[trajectory]]
 time_s = 0.0
-position_mm = [0.0, 0.0, 0.0]
+position_mm = {start_mm:?}
 [[trajectory]]
-time_s = 1.0
-position_mm = [0.0, 0.0, -1.0]
+time_s = {end_s:?}
+position_mm = {end_mm:?}
 "#
     )
 }
@@ -97,29 +116,15 @@ fn a_slide_loads_the_contact_tangentially_and_a_press_does_not() {
     use sparsh_scene::{RungLimits, SolverKind};
     let limits = RungLimits::of(SolverTable::builtin(), SolverKind::Layered, 0.02, 1.0);
     // 2 mm gel, the sphere pressed 0.15 mm (δ/h 0.075), then slid about 0.8 mm over five frames
-    let scene = r#"
-solver = "layered"
-[sensor]
-preset = "digit"
-width_px = 64
-height_px = 48
-mm_per_px = 0.12
-fps = 10.0
-[gel]
-thickness_mm = 2.0
-friction = 1.0
-[indenter]
-shape = "sphere"
-radius_mm = 5.0
-[[trajectory]]
-time_s = 0.0
-position_mm = [0.0, 0.0, -0.15]
-[[trajectory]]
-time_s = 0.6
-position_mm = [1.0, 0.0, -0.15]
-"#;
+    let scene = layered_scene(
+        "warn",
+        1.0,
+        5.0,
+        [0.0, 0.0, -0.15],
+        (0.6, [1.0, 0.0, -0.15]),
+    );
     let tmp = tempfile::tempdir().unwrap();
-    let scene = write_scene(tmp.path(), scene);
+    let scene = write_scene(tmp.path(), &scene);
     let ds = tmp.path().join("ds");
     let out = generate(&scene, &ds, &["--quiet"]);
     assert!(out.status.success(), "{}", stderr(&out));
