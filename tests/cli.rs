@@ -721,6 +721,43 @@ fn calibration_commands_reject_bad_input_on_one_line() {
         &run(&["--pixmm", "0.03", "--shadows", "--sensor", "nope"]),
         "unknown preset nope",
     );
+    // The surface under the ball: a known model, with the gel it needs.
+    assert_user_error(
+        &run(&["--pixmm", "0.03", "--mechanics", "soft"]),
+        "--mechanics: unknown model \"soft\"",
+    );
+    assert_user_error(
+        &run(&["--pixmm", "0.03", "--mechanics", "layered"]),
+        "--mechanics layered needs --gel-thickness-mm",
+    );
+    assert_user_error(
+        &run(&[
+            "--pixmm",
+            "0.03",
+            "--mechanics",
+            "geometric",
+            "--gel-thickness-mm",
+            "0",
+        ]),
+        "--gel-thickness-mm must be > 0, got 0",
+    );
+    assert_user_error(
+        &run(&["--pixmm", "0.03", "--gel-thickness-mm", "3"]),
+        "--gel-thickness-mm is used only with --mechanics geometric or layered",
+    );
+    assert_user_error(
+        &run(&[
+            "--pixmm",
+            "0.03",
+            "--mechanics",
+            "layered",
+            "--gel-thickness-mm",
+            "3",
+            "--poisson-ratio",
+            "0.7",
+        ]),
+        "--poisson-ratio must be in (−1, 0.5], got 0.7",
+    );
     // Without --pixmm the pitch is the params.json's beside the pack (Taxim's layout).
     assert_user_error(
         &run(&[]),
@@ -797,6 +834,29 @@ fn sim2real_takes_the_pitch_from_the_calibration() {
     std::fs::write(bare.join("map.json"), map.to_string()).unwrap();
     assert_user_error(&run(&bare, &[]), "--pixmm");
     assert_user_error(&run(&bare, &["--pixmm", "0.0295"]), "missing.npz");
+    // The mechanics a map was fitted under are read back from it, and refused when malformed.
+    for (mechanics, expect) in [
+        (
+            serde_json::json!({"model": "layered", "thickness_mm": -1.0, "poisson_ratio": 0.49}),
+            "provenance.mechanics: thickness_mm must be > 0, got -1",
+        ),
+        (
+            serde_json::json!({"model": "soft"}),
+            "provenance.mechanics: unknown variant `soft`",
+        ),
+    ] {
+        let odd = tmp.path().join("odd_mechanics");
+        std::fs::create_dir_all(&odd).unwrap();
+        std::fs::copy(shipped.join("background.png"), odd.join("background.png")).unwrap();
+        let mut map: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(shipped.join("map.json")).unwrap())
+                .unwrap();
+        map["provenance"]["mechanics"] = mechanics;
+        std::fs::write(odd.join("map.json"), map.to_string()).unwrap();
+        let out = run(&odd, &[]);
+        assert_user_error(&out, expect);
+        assert!(stderr(&out).contains("map.json"), "{}", stderr(&out));
+    }
     // Shadows without a fitted calibration need a sensor to cast them from.
     assert_user_error(&run(&shipped, &["--shadows"]), "--sensor");
     assert_user_error(&run(&shipped, &["--sensor", "gelsight2017"]), "--shadows");

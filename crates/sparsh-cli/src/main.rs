@@ -252,6 +252,17 @@ enum Command {
         /// pack, gelsight_mini_vga for the Mini).
         #[arg(long)]
         sensor: Option<String>,
+        /// The surface under the ball: `hertz` (closed form), or a rung pressed until its contact
+        /// circle has the marked radius (`geometric`, `halfspace`, `layered`); fit one map per
+        /// rung a scene renders with.
+        #[arg(long, default_value = "hertz")]
+        mechanics: String,
+        /// Gel thickness for `--mechanics geometric|layered` (mm).
+        #[arg(long)]
+        gel_thickness_mm: Option<f64>,
+        /// Poisson ratio for `--mechanics layered`.
+        #[arg(long, default_value_t = 0.49)]
+        poisson_ratio: f64,
     },
     /// Render a pack's ball indentations with a calibration and score them against the real frames.
     Sim2real {
@@ -715,6 +726,9 @@ fn run(cli: Cli) -> Result<()> {
             shadows,
             shadow_steps,
             sensor,
+            mechanics,
+            gel_thickness_mm,
+            poisson_ratio,
         } => optics::calibrate(
             &pack,
             ball_radius_mm,
@@ -726,6 +740,7 @@ fn run(cli: Cli) -> Result<()> {
                 steps: Some(shadow_steps),
                 sensor: sensor.as_deref(),
             },
+            optics::mechanics(&mechanics, gel_thickness_mm, poisson_ratio)?,
         ),
         Command::Sim2real {
             pack,

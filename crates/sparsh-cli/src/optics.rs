@@ -4,6 +4,7 @@
 use std::path::Path;
 
 use anyhow::{Context, Result, anyhow, bail};
+use sparsh_optics::ball::BallMechanics;
 use sparsh_optics::sim2real::{
     BallSetup, FitOptions, FrameScore, ShadowSearch, calibrate_pack, calibrate_pack_with_shadows,
     pack_renderer, render_and_score, summarize,
@@ -11,7 +12,61 @@ use sparsh_optics::sim2real::{
 use sparsh_optics::{Calibration, CalibrationPack, FrameSet};
 use sparsh_scene::SensorConfig;
 
-fn setup(ball_radius_mm: f64, mm_per_px: f64) -> Result<BallSetup> {
+/// The `--mechanics` of `calibrate`, with the gel it needs.
+pub fn mechanics(
+    name: &str,
+    thickness_mm: Option<f64>,
+    poisson_ratio: f64,
+) -> Result<BallMechanics> {
+    let thickness =
+        || thickness_mm.ok_or_else(|| anyhow!("--mechanics {name} needs --gel-thickness-mm"));
+    let mechanics = match name {
+        "hertz" => BallMechanics::Hertz,
+        "halfspace" => BallMechanics::Halfspace,
+        "geometric" => BallMechanics::Geometric {
+            thickness_mm: thickness()?,
+        },
+        "layered" => BallMechanics::Layered {
+            thickness_mm: thickness()?,
+            poisson_ratio,
+        },
+        other => {
+            bail!("--mechanics: unknown model {other:?} (hertz, geometric, halfspace, layered)")
+        }
+    };
+    if thickness_mm.is_some()
+        && matches!(mechanics, BallMechanics::Hertz | BallMechanics::Halfspace)
+    {
+        bail!("--gel-thickness-mm is used only with --mechanics geometric or layered");
+    }
+    if let Some(h) = thickness_mm
+        && !(h.is_finite() && h > 0.0)
+    {
+        bail!("--gel-thickness-mm must be > 0, got {h}");
+    }
+    if !(poisson_ratio.is_finite() && poisson_ratio > -1.0 && poisson_ratio <= 0.5) {
+        bail!("--poisson-ratio must be in (−1, 0.5], got {poisson_ratio}");
+    }
+    Ok(mechanics)
+}
+
+/// The mechanics a calibration was fitted under (`provenance.mechanics` of its map.json; Hertz
+/// when absent, as every calibration before the field was).
+fn recorded_mechanics(map_json: &Path, calibration: &Calibration) -> Result<BallMechanics> {
+    match calibration.provenance.get("mechanics") {
+        None => Ok(BallMechanics::Hertz),
+        Some(v) => {
+            let mechanics: BallMechanics = serde_json::from_value(v.clone())
+                .map_err(|e| anyhow!("{}: provenance.mechanics: {e}", map_json.display()))?;
+            mechanics
+                .check()
+                .map_err(|e| anyhow!("{}: provenance.{e}", map_json.display()))?;
+            Ok(mechanics)
+        }
+    }
+}
+
+fn setup(ball_radius_mm: f64, mm_per_px: f64, mechanics: BallMechanics) -> Result<BallSetup> {
     if !(ball_radius_mm.is_finite() && ball_radius_mm > 0.0) {
         bail!("--ball-radius-mm must be > 0, got {ball_radius_mm}");
     }
@@ -21,6 +76,7 @@ fn setup(ball_radius_mm: f64, mm_per_px: f64) -> Result<BallSetup> {
     Ok(BallSetup {
         ball_radius_mm,
         mm_per_px,
+        mechanics,
     })
 }
 
@@ -110,8 +166,13 @@ pub fn calibrate(
     frames: FrameSet,
     out: &Path,
     shadows: ShadowOptions,
+    mechanics: BallMechanics,
 ) -> Result<()> {
-    let setup = setup(ball_radius_mm, pack_pixel_pitch(pack_path, mm_per_px)?)?;
+    let setup = setup(
+        ball_radius_mm,
+        pack_pixel_pitch(pack_path, mm_per_px)?,
+        mechanics,
+    )?;
     let search = match (shadows.shadows, shadows.sensor) {
         (true, Some(name)) => Some(ShadowSearch::new(
             preset(name)?,
@@ -148,10 +209,11 @@ pub fn calibrate(
         .save(out)
         .map_err(|e| anyhow!("{}: {e}", out.display()))?;
     eprintln!(
-        "{}: calibrated on {} frames of {} in {:.1} s",
+        "{}: calibrated on {} frames of {} under {} in {:.1} s",
         out.display(),
         picked.len(),
         pack_path.display(),
+        mechanics.describe(),
         started.elapsed().as_secs_f64()
     );
     Ok(())
@@ -215,6 +277,7 @@ pub fn sim2real(pack_path: &Path, calib: &Path, options: Sim2realOptions) -> Res
     let setup = setup(
         options.ball_radius_mm,
         pitch(&map_json, &calibration, options.mm_per_px)?,
+        recorded_mechanics(&map_json, &calibration)?,
     )?;
     let fitted = calibration.shadows.as_ref();
     let opts = options.shadows;

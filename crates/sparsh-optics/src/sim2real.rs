@@ -1,5 +1,6 @@
 //! Calibration from a ball pack and the sim-to-real score: each real frame's ball indentation is
-//! rendered (Hertz surface from the marked contact radius, see [`crate::ball`]) and compared to
+//! rendered (the surface under the marked contact circle, Hertz's or a rung's, see
+//! [`crate::ball`]) and compared to
 //! the real frame over the full image and over a square of half-width 2a around the contact.
 
 use image::RgbImage;
@@ -7,6 +8,8 @@ use rayon::prelude::*;
 use serde::Serialize;
 use sparsh_scene::{Grid, Light, SensorConfig};
 
+use crate::Surface;
+use crate::ball::BallMechanics;
 use crate::calibrated::{
     CalibratedRenderer, Calibration, ColourMap, FittedLights, MapFitter, attenuation,
 };
@@ -14,18 +17,20 @@ use crate::metrics::{Scores, crop, scores};
 use crate::pack::CalibrationPack;
 use crate::photometric::{light_shares, shadow_settings};
 use crate::shadow::{HeightField, cell_visibilities};
-use crate::{Surface, ball};
 
 /// Pixels farther than this many contact radii from the contact count as background.
 const BACKGROUND_RADII: f64 = 3.0;
 
-/// The physical set-up of a pack: ball radius and pixel pitch.
+/// The physical set-up of a pack: ball radius, pixel pitch and the mechanics that turn a marked
+/// contact circle into the gel's surface.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct BallSetup {
     /// Radius of the calibration ball (mm).
     pub ball_radius_mm: f64,
     /// Pixel pitch on the gel (mm per pixel).
     pub mm_per_px: f64,
+    /// The surface under the ball.
+    pub mechanics: BallMechanics,
 }
 
 /// Options of the map fit.
@@ -46,7 +51,7 @@ impl Default for FitOptions {
     }
 }
 
-/// The sensor grid of a pack and the Hertz u_z field of its frame `k`.
+/// The sensor grid of a pack and the u_z field of its frame `k` under `setup.mechanics`.
 pub fn frame_surface_uz(
     pack: &CalibrationPack,
     k: usize,
@@ -65,7 +70,9 @@ pub fn frame_surface_uz(
         (c[1] + 0.5 - h as f64 / 2.0) * setup.mm_per_px,
     ];
     let a_mm = pack.radii_px[k] * setup.mm_per_px;
-    let uz = ball::ball_press_uz_mm(grid, centre_mm, a_mm, setup.ball_radius_mm)
+    let uz = setup
+        .mechanics
+        .uz_mm(grid, centre_mm, a_mm, setup.ball_radius_mm)
         .map_err(|e| format!("touch_radius: frame {k}: {e}"))?;
     Ok((grid, uz))
 }
@@ -110,7 +117,7 @@ pub fn estimate_background(pack: &CalibrationPack, frames: &[usize]) -> RgbImage
 /// so the sums (and the map) do not depend on the thread count.
 const FRAMES_PER_PARTIAL: usize = 4;
 
-/// One fitting frame: the pack frame, its Hertz surface and its pixels within 3a of the contact.
+/// One fitting frame: the pack frame, its surface and its pixels within 3a of the contact.
 struct FitFrame {
     k: usize,
     grid: Grid,
@@ -124,7 +131,7 @@ fn fit_frames(
     setup: BallSetup,
 ) -> Result<Vec<FitFrame>, String> {
     frames
-        .iter()
+        .par_iter()
         .map(|&k| {
             let (grid, uz) = frame_surface_uz(pack, k, setup)?;
             let far = far_from_contact(pack, k);
@@ -222,6 +229,7 @@ fn provenance(
         "frames": frames,
         "ball_radius_mm": setup.ball_radius_mm,
         "mm_per_px": setup.mm_per_px,
+        "mechanics": setup.mechanics,
         "nodes": options.nodes,
         "smoothness": options.smoothness,
         "fit_pixels": fit_pixels,

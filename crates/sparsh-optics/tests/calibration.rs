@@ -4,6 +4,7 @@
 use std::path::Path;
 
 use npyz::WriterBuilder;
+use sparsh_optics::ball::BallMechanics;
 use sparsh_optics::sim2real::{BallSetup, FitOptions, calibrate_pack, render_and_score, summarize};
 use sparsh_optics::{Calibration, CalibrationPack, Surface};
 
@@ -12,6 +13,7 @@ const H: usize = 72;
 const SETUP: BallSetup = BallSetup {
     ball_radius_mm: 2.0,
     mm_per_px: 0.05,
+    mechanics: BallMechanics::Hertz,
 };
 
 /// The known map: colour change affine in the normal's lateral components, with a position

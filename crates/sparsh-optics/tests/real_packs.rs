@@ -11,6 +11,7 @@
 
 use std::path::PathBuf;
 
+use sparsh_optics::ball::BallMechanics;
 use sparsh_optics::metrics::Scores;
 use sparsh_optics::sim2real::{
     BallSetup, FitOptions, ShadowSearch, calibrate_pack, calibrate_pack_with_shadows,
@@ -50,6 +51,7 @@ fn gelsight_pack() -> Option<CalibrationPack> {
 const GELSIGHT: BallSetup = BallSetup {
     ball_radius_mm: 2.0,
     mm_per_px: 0.0295,
+    mechanics: BallMechanics::Hertz,
 };
 
 /// Mean crop scores of the odd frames rendered with `renderer`.

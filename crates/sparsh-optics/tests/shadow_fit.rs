@@ -5,6 +5,7 @@
 //! shadow-free fit; calibrations with fitted lights reach scenes through `map.json`.
 
 use image::RgbImage;
+use sparsh_optics::ball::BallMechanics;
 use sparsh_optics::sim2real::{
     BallSetup, FitOptions, ShadowSearch, calibrate_pack, calibrate_pack_with_shadows,
     frame_surface_uz, pack_renderer, render_and_score, summarize,
@@ -20,6 +21,7 @@ const H: usize = 180;
 const SETUP: BallSetup = BallSetup {
     ball_radius_mm: 2.0,
     mm_per_px: 0.059,
+    mechanics: BallMechanics::Hertz,
 };
 /// The LEDs' z the frames are made with (mm).
 const TRUE_Z_MM: f64 = -4.0;

@@ -601,9 +601,16 @@ fn run_variant(
         let tokens_of = |vit: &Vit| {
             let (mut syn, dims) = enc.encode(vit, &inputs, &eff.device);
             let (mut rea, _) = enc.encode(vit, real_inputs, &eff.device);
-            let stats = RowStats::of(&syn, dims[1] * dims[2], &train);
+            let row = dims[1] * dims[2];
+            let stats = RowStats::of(&syn, row, &train);
             stats.apply(&mut syn);
             stats.apply(&mut rea);
+            let real_rows: Vec<usize> = (0..rea.len() / row).collect();
+            let (zv, zr) = (z_spread(&syn, row, &val), z_spread(&rea, row, &real_rows));
+            log(&format!(
+                "{}: standardized tokens, RMS / 99th percentile of |z|: synthetic validation {:.2} / {:.2}, real {:.2} / {:.2}",
+                variant.name, zv[0], zv[1], zr[0], zr[1]
+            ));
             (syn, rea, dims)
         };
         let probe = |tokens: &PairedTokens, seed: u64| {
@@ -633,6 +640,27 @@ fn run_variant(
         std::fs::remove_dir_all(&data_dir).map_err(|e| Error::file(&data_dir, e))?;
     }
     Ok(rows)
+}
+
+/// RMS and 99th percentile of |z| over the rows `rows` of standardized tokens (rows of `row`
+/// values): how far tokens sit from the synthetic training frames' statistics, which the probe
+/// was fitted inside.
+fn z_spread(tokens: &[f32], row: usize, rows: &[usize]) -> [f64; 2] {
+    let mut z: Vec<f64> = rows
+        .iter()
+        .flat_map(|&i| {
+            tokens[i * row..(i + 1) * row]
+                .iter()
+                .map(|v| f64::from(v.abs()))
+        })
+        .collect();
+    if z.is_empty() {
+        return [f64::NAN; 2];
+    }
+    let rms = (z.iter().map(|v| v * v).sum::<f64>() / z.len() as f64).sqrt();
+    let k = ((z.len() - 1) as f64 * 0.99).round() as usize;
+    let (_, p99, _) = z.select_nth_unstable_by(k, f64::total_cmp);
+    [rms, *p99]
 }
 
 /// The probe's forward pass over rows of `[n, t, d]` tokens.
