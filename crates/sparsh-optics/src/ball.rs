@@ -249,7 +249,7 @@ pub fn rung_ball_press_uz_mm(
         if hi - lo < 1e-9 * depth {
             break;
         }
-        let secant = depth * (a / radius.max(1e-3 * a)).powi(2);
+        let secant = (depth * (a / radius.max(1e-3 * a)).powi(2)).clamp(0.25 * depth, 4.0 * depth);
         depth = if secant > lo && secant < hi {
             secant
         } else if hi.is_finite() {

@@ -597,23 +597,27 @@ fn run_variant(
         Ok((preds, fitted.best_epoch, fitted.val_preds))
     })?;
     if let (Some(enc), Some(popts)) = (probe_on, eff.probe) {
-        // tokens standardized with the synthetic training frames' statistics
+        // Tokens standardized with the synthetic training frames' statistics; the real ones also
+        // with their own (no labels), to tell a shift of the tokens' scale from a loss of the
+        // contact in them (logged, not a row).
         let tokens_of = |vit: &Vit| {
             let (mut syn, dims) = enc.encode(vit, &inputs, &eff.device);
             let (mut rea, _) = enc.encode(vit, real_inputs, &eff.device);
             let row = dims[1] * dims[2];
+            let real_rows: Vec<usize> = (0..rea.len() / row).collect();
+            let mut own = rea.clone();
+            RowStats::of(&own, row, &real_rows).apply(&mut own);
             let stats = RowStats::of(&syn, row, &train);
             stats.apply(&mut syn);
             stats.apply(&mut rea);
-            let real_rows: Vec<usize> = (0..rea.len() / row).collect();
             let (zv, zr) = (z_spread(&syn, row, &val), z_spread(&rea, row, &real_rows));
             log(&format!(
                 "{}: standardized tokens, RMS / 99th percentile of |z|: synthetic validation {:.2} / {:.2}, real {:.2} / {:.2}",
                 variant.name, zv[0], zv[1], zr[0], zr[1]
             ));
-            (syn, rea, dims)
+            ((syn, rea, dims), own)
         };
-        let probe = |tokens: &PairedTokens, seed: u64| {
+        let probe = |(tokens, own): &(PairedTokens, Vec<f32>), name: &str, seed: u64| {
             let (preds, fitted) = probe_seed(
                 tokens,
                 &train_pairs,
@@ -623,15 +627,55 @@ fn run_variant(
                 seed,
                 &eff.device,
             );
+            let [_, t, d] = tokens.2;
+            let rows: Vec<usize> = (0..real.len()).collect();
+            let own_preds = fitted.predict(&token_forward(own, t, d), &rows);
+            let spread = |c: &[Circle]| {
+                let n = c.len().max(1) as f64;
+                let (mx, my) = (
+                    c.iter().map(|c| c.cx_px).sum::<f64>() / n,
+                    c.iter().map(|c| c.cy_px).sum::<f64>() / n,
+                );
+                let s = (c
+                    .iter()
+                    .map(|c| (c.cx_px - mx).powi(2) + (c.cy_px - my).powi(2))
+                    .sum::<f64>()
+                    / n)
+                    .sqrt();
+                format!("mean ({mx:.0}, {my:.0}) px, spread {s:.1} px")
+            };
+            // Pearson r of predicted and marked centres along x and y: does the probe follow the
+            // contact on real frames at all?
+            let follows = |axis: fn(&Circle) -> f64| {
+                let (p, m): (Vec<f32>, Vec<f32>) = preds
+                    .iter()
+                    .zip(&real.circles)
+                    .map(|(p, m)| (axis(p) as f32, axis(m) as f32))
+                    .unzip();
+                crate::fields::metrics::pearson(&p, &m).unwrap_or(f64::NAN)
+            };
+            log(&format!(
+                "{}: {name} seed {seed}: real predictions {}, r with the marked centres x {:.2}, y {:.2} (marked circles {}); tokens standardized on the real frames themselves: centre {:.1} px, radius {:.1} % (medians)",
+                variant.name,
+                spread(&preds),
+                follows(|c| c.cx_px),
+                follows(|c| c.cy_px),
+                spread(&real.circles),
+                medians(&own_preds, &real.circles).map_or(f64::NAN, |m| m[0]),
+                medians(&own_preds, &real.circles).map_or(f64::NAN, |m| m[1]),
+            ));
             Ok((preds, fitted.best_epoch, fitted.val_preds))
         };
         if let Some(vit) = &enc.pretrained {
             let once = tokens_of(vit);
-            learned("probe (pretrained)", &|seed| probe(&once, seed))?;
+            learned("probe (pretrained)", &|seed| {
+                probe(&once, "probe (pretrained)", seed)
+            })?;
         }
         learned("probe (random)", &|seed| {
             probe(
                 &tokens_of(&crate::encoders::random_encoder(&enc.recipe, seed)?),
+                "probe (random)",
                 seed,
             )
         })?;
