@@ -666,15 +666,15 @@ fn run_variant(
                     .unzip();
                 crate::fields::metrics::pearson(&p, &m).unwrap_or(f64::NAN)
             };
+            let [own_centre, own_radius] =
+                medians(&own_preds, &real.circles).unwrap_or([f64::NAN; 2]);
             log(&format!(
-                "{}: {name} seed {seed}: real predictions {}, r with the marked centres x {:.2}, y {:.2} (marked circles {}); tokens standardized on the real frames themselves: centre {:.1} px, radius {:.1} % (medians)",
+                "{}: {name} seed {seed}: real predictions {}, r with the marked centres x {:.2}, y {:.2} (marked circles {}); tokens standardized on the real frames themselves: centre {own_centre:.1} px, radius {own_radius:.1} % (medians)",
                 variant.name,
                 spread(&preds),
                 follows(|c| c.cx_px),
                 follows(|c| c.cy_px),
                 spread(&real.circles),
-                medians(&own_preds, &real.circles).map_or(f64::NAN, |m| m[0]),
-                medians(&own_preds, &real.circles).map_or(f64::NAN, |m| m[1]),
             ));
             Ok((preds, fitted.best_epoch, fitted.val_preds))
         };
@@ -834,14 +834,34 @@ fn mirrored(frames: &CircleFrames, k: usize, flip: usize, pack: [usize; 2]) -> (
             }
         }
     }
-    let mut circle = frames.circles[k];
+    (out, mirrored_circle(frames.circles[k], flip, pack))
+}
+
+/// A circle in a `pack`-sized image mirrored as [`mirrored`] mirrors the image.
+fn mirrored_circle(mut circle: Circle, flip: usize, pack: [usize; 2]) -> Circle {
     if flip & 1 == 1 {
         circle.cx_px = pack[0] as f64 - 1.0 - circle.cx_px;
     }
     if flip & 2 == 2 {
         circle.cy_px = pack[1] as f64 - 1.0 - circle.cy_px;
     }
-    (out, circle)
+    circle
+}
+
+/// One fold of the ceilings: the scored frames' positions held out (every `folds`-th from
+/// `fold`) and the training rows, those whose pack frame (`groups`) is not held out.
+fn fold_split(
+    test: &[usize],
+    groups: &[usize],
+    folds: usize,
+    fold: usize,
+) -> (Vec<usize>, Vec<usize>) {
+    let held: Vec<usize> = (0..test.len()).filter(|i| i % folds == fold).collect();
+    let held_frames: Vec<usize> = held.iter().map(|&i| test[i]).collect();
+    let train = (0..groups.len())
+        .filter(|&r| !held_frames.contains(&groups[r]))
+        .collect();
+    (held, train)
 }
 
 /// The ceiling: for each fold of the test frames, the CNN trained on every other frame of the
@@ -876,10 +896,9 @@ fn real_ceiling(
     for (seed, errs) in errors.iter_mut().enumerate() {
         let mut preds = vec![None; test.len()];
         for fold in 0..eff.folds {
-            let held: Vec<usize> = (0..test.len()).filter(|i| i % eff.folds == fold).collect();
-            let held_frames: Vec<usize> = held.iter().map(|&i| test[i]).collect();
-            let train: Vec<(usize, Circle)> = (0..augmented.len())
-                .filter(|&r| !held_frames.contains(&augmented.groups[r]))
+            let (held, rows) = fold_split(test, &augmented.groups, eff.folds, fold);
+            let train: Vec<(usize, Circle)> = rows
+                .into_iter()
                 .map(|r| (r, augmented.circles[r]))
                 .collect();
             train_frames = train.len() / 4;
@@ -962,19 +981,12 @@ fn real_probe_ceiling(
                 &turn(&pack.background),
             )?);
             let [cx, cy] = pack.centers_px[k];
-            circles.push(Circle {
-                cx_px: if flip & 1 == 1 {
-                    w as f64 - 1.0 - cx
-                } else {
-                    cx
-                },
-                cy_px: if flip & 2 == 2 {
-                    h as f64 - 1.0 - cy
-                } else {
-                    cy
-                },
+            let circle = Circle {
+                cx_px: cx,
+                cy_px: cy,
                 r_px: pack.radii_px[k],
-            });
+            };
+            circles.push(mirrored_circle(circle, flip, [w, h]));
             groups.push(k);
         }
     }
@@ -991,11 +1003,7 @@ fn real_probe_ceiling(
         for seed in 0..eff.seeds {
             let mut preds = vec![None; test.len()];
             for fold in 0..eff.folds {
-                let held: Vec<usize> = (0..test.len()).filter(|i| i % eff.folds == fold).collect();
-                let held_frames: Vec<usize> = held.iter().map(|&i| test[i]).collect();
-                let train: Vec<usize> = (0..groups.len())
-                    .filter(|&r| !held_frames.contains(&groups[r]))
-                    .collect();
+                let (held, train) = fold_split(test, &groups, eff.folds, fold);
                 let stats = RowStats::of(&own, row, &train);
                 let (mut own_std, mut scored_std) = (own.clone(), scored.clone());
                 stats.apply(&mut own_std);
