@@ -1,6 +1,6 @@
 //! `sparsh ablate` end to end with quick settings on Taxim's GelSight pack: every row of the
-//! table (references, CNN, probes on a pretrained and a random encoder, the real ceiling), the
-//! report files, `--resume`, and one-line errors for bad ablation files.
+//! table (references, CNN, probes on a pretrained and a random encoder, the real ceiling, the
+//! marks' noise), the report files, `--resume`, and one-line errors for bad ablation files.
 //!
 //! Skips with a message when the pack is absent, unless `SPARSH_REQUIRE_TAXIM` is set (CI).
 
@@ -58,6 +58,7 @@ train = {{ epochs = 3, batch_size = 16, lr = 1e-3 }}
 [real]
 folds = 4
 train = {{ epochs = 3, batch_size = 16, lr = 2e-3 }}
+marks_calibration = "{calib}"
 [[variant]]
 name = "base"
 probe = true
@@ -68,6 +69,7 @@ remove = ["optics.calibration"]
 {extra}"#,
         scene = checkout().join("scenes/sim2real_gelsight.toml").display(),
         pack = pack.display(),
+        calib = checkout().join("assets/calib/gelsight").display(),
     );
     let path = dir.join("ablation.toml");
     std::fs::write(&path, text).unwrap();
@@ -102,6 +104,7 @@ fn ablate_trains_on_synthetic_frames_scores_real_ones_and_resumes() {
         ("photometric optics", "cnn"),
         ("real frames", "constant"),
         ("real frames", "cnn"),
+        ("real frames", "calibrated optics fit"),
     ];
     assert_eq!(
         names,
@@ -123,6 +126,19 @@ fn ablate_trains_on_synthetic_frames_scores_real_ones_and_resumes() {
     // the constant circle misses the 24 odd frames' centres, spread over most of the frame,
     // by tens of pixels
     assert!(table[0][6].parse::<f64>().unwrap() > 30.0, "{:?}", table[0]);
+    // the circles the calibrated optics fit to the frames sit within a few pixels of the marks
+    // (the marks' noise; the constant of the unscored real frames misses by tens of pixels)
+    let (noise, real_constant) = (&table[8], &table[6]);
+    let centre = |r: &csv::StringRecord| r[6].parse::<f64>().unwrap();
+    assert!(
+        centre(noise) < 10.0 && centre(noise) < centre(real_constant) / 5.0,
+        "{noise:?}"
+    );
+    assert!(
+        stderr(&run).contains("label noise: fitted circles against the marks"),
+        "{}",
+        stderr(&run)
+    );
     for f in [
         "ablation.md",
         "ablation.png",
@@ -172,6 +188,27 @@ fn bad_ablation_files_get_one_line_errors() {
         "gel.hardness",
     );
     run("[[variant]]\nname = \"Base\"\n", "variant[2].name");
+    // a calibration that is not there is refused before anything runs
+    let dir = tempfile::tempdir_in(tmp.path()).unwrap();
+    let cfg = config(dir.path(), &pack, "");
+    let text = std::fs::read_to_string(&cfg).unwrap().replace(
+        "marks_calibration = \"",
+        "marks_calibration = \"/no/such/calibration",
+    );
+    std::fs::write(&cfg, text).unwrap();
+    let out = dir.path().join("run");
+    assert_user_error(
+        &sparsh(&[
+            "ablate",
+            "--config",
+            cfg.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+            "--quick",
+        ]),
+        "real.marks_calibration",
+    );
+    assert!(!out.join("ablation.toml").exists());
     let dir = tempfile::tempdir_in(tmp.path()).unwrap();
     let cfg = config(dir.path(), &pack, "");
     let text = std::fs::read_to_string(&cfg).unwrap().replace(

@@ -448,6 +448,7 @@ fn calibrate_then_sim2real_on_taxims_pack() {
         saved.to_str().unwrap(),
         "--figure",
         figure.to_str().unwrap(),
+        "--refit",
     ])))
     .unwrap();
     let frames = report["frames"].as_array().unwrap();
@@ -478,6 +479,37 @@ fn calibrate_then_sim2real_on_taxims_pack() {
     }
     let fig = image::open(&figure).unwrap();
     assert_eq!((fig.width(), fig.height()), (3 * w, h));
+    // --refit: each frame's circle fitted by rendering, from its mark. A fit never ends worse
+    // than its start; on frames rendered at its own circles (with noise) it finds them again to
+    // a fraction of a pixel; the summary's median distance is the frames' own.
+    let refit = &report["refit"];
+    let mut distances: Vec<f64> = refit["frames"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|f| {
+            let (start, fitted) = (&f["fit"]["start"], &f["fit"]["fitted"]);
+            assert!(
+                f["fit"]["rms_fitted"].as_f64() <= f["fit"]["rms_start"].as_f64(),
+                "{f}"
+            );
+            let c = |v: &serde_json::Value, i: usize| v["centre_px"][i].as_f64().unwrap();
+            (c(fitted, 0) - c(start, 0)).hypot(c(fitted, 1) - c(start, 1))
+        })
+        .collect();
+    assert_eq!(distances.len(), 24);
+    distances.sort_by(f64::total_cmp);
+    let median = (distances[11] + distances[12]) / 2.0;
+    let summary = &refit["summary"];
+    assert!(
+        (summary["centre_median_px"].as_f64().unwrap() - median).abs() < 1e-9,
+        "{summary}"
+    );
+    assert!(median < 10.0, "{summary}");
+    assert!(
+        summary["check_centre_median_px"].as_f64().unwrap() < 0.25,
+        "{summary}"
+    );
 
     // Fitted under the layered rung's surface (3 mm gel), the map records it and sim2real
     // renders with it: still above Taxim's own crop PSNR on the held-out frames.

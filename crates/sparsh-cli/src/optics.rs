@@ -4,10 +4,12 @@
 use std::path::Path;
 
 use anyhow::{Context, Result, anyhow, bail};
+use rayon::prelude::*;
 use sparsh_optics::ball::BallMechanics;
 use sparsh_optics::sim2real::{
-    BallSetup, FitOptions, FrameScore, ShadowSearch, calibrate_pack, calibrate_pack_with_shadows,
-    pack_renderer, render_and_score, summarize,
+    BallSetup, FitOptions, FrameRefit, FrameScore, ShadowSearch, calibrate_pack,
+    calibrate_pack_with_shadows, pack_renderer, recorded_mechanics, refit_frame, render_and_score,
+    summarize, summarize_refits,
 };
 use sparsh_optics::{Calibration, CalibrationPack, FrameSet};
 use sparsh_scene::SensorConfig;
@@ -50,20 +52,10 @@ pub fn mechanics(
     Ok(mechanics)
 }
 
-/// The mechanics a calibration was fitted under (`provenance.mechanics` of its map.json; Hertz
-/// when absent, as every calibration before the field was).
-fn recorded_mechanics(map_json: &Path, calibration: &Calibration) -> Result<BallMechanics> {
-    match calibration.provenance.get("mechanics") {
-        None => Ok(BallMechanics::Hertz),
-        Some(v) => {
-            let mechanics: BallMechanics = serde_json::from_value(v.clone())
-                .map_err(|e| anyhow!("{}: provenance.mechanics: {e}", map_json.display()))?;
-            mechanics
-                .check()
-                .map_err(|e| anyhow!("{}: provenance.{e}", map_json.display()))?;
-            Ok(mechanics)
-        }
-    }
+/// The mechanics a calibration was fitted under ([`recorded_mechanics`]), errors naming its
+/// map.json.
+fn mechanics_of(calib: &Path, calibration: &Calibration) -> Result<BallMechanics> {
+    recorded_mechanics(calibration).map_err(|e| anyhow!("{}/{e}", calib.display()))
 }
 
 fn setup(ball_radius_mm: f64, mm_per_px: f64, mechanics: BallMechanics) -> Result<BallSetup> {
@@ -235,6 +227,8 @@ pub struct Sim2realOptions<'a> {
     pub save: Option<&'a Path>,
     /// PNG of real | simulated | difference for the median frame.
     pub figure: Option<&'a Path>,
+    /// Fit each scored frame's circle by rendering and compare the marks to the fits.
+    pub refit: bool,
 }
 
 /// The pixel pitch of a sim2real run: recorded once, in the calibration's `map.json`
@@ -277,7 +271,7 @@ pub fn sim2real(pack_path: &Path, calib: &Path, options: Sim2realOptions) -> Res
     let setup = setup(
         options.ball_radius_mm,
         pitch(&map_json, &calibration, options.mm_per_px)?,
-        recorded_mechanics(&map_json, &calibration)?,
+        mechanics_of(calib, &calibration)?,
     )?;
     let fitted = calibration.shadows.as_ref();
     let opts = options.shadows;
@@ -351,16 +345,32 @@ pub fn sim2real(pack_path: &Path, calib: &Path, options: Sim2realOptions) -> Res
             scores[median].crop.psnr_db
         );
     }
+    let refits: Vec<FrameRefit> = if options.refit {
+        let frames: Vec<usize> = scores.iter().map(|s| s.frame).collect();
+        frames
+            .par_iter()
+            .map(|&k| {
+                refit_frame(&renderer, &pack, k, setup)
+                    .map_err(|e| anyhow!("{}: frame {k}: {e}", pack_path.display()))
+            })
+            .collect::<Result<_>>()?
+    } else {
+        Vec::new()
+    };
     let json = options.json;
     let summary = summarize(&scores);
     if json {
-        println!(
-            "{}",
-            serde_json::to_string_pretty(&serde_json::json!({
-                "summary": summary,
-                "frames": scores,
-            }))?
-        );
+        let mut out = serde_json::json!({
+            "summary": summary,
+            "frames": scores,
+        });
+        if options.refit {
+            out["refit"] = serde_json::json!({
+                "summary": summarize_refits(&refits),
+                "frames": refits,
+            });
+        }
+        println!("{}", serde_json::to_string_pretty(&out)?);
     } else {
         println!("| region | statistic | PSNR (dB) | SSIM | MAE (0–255) |");
         println!("|---|---|---|---|---|");
@@ -376,8 +386,41 @@ pub fn sim2real(pack_path: &Path, calib: &Path, options: Sim2realOptions) -> Res
             );
         }
         println!("{} frames", summary.frames);
+        if options.refit {
+            print_refits(&refits);
+        }
     }
     Ok(())
+}
+
+/// The marks against the circles fitted by rendering, as `sim2real --refit` prints them.
+fn print_refits(refits: &[FrameRefit]) {
+    let r = summarize_refits(refits);
+    println!();
+    println!(
+        "marks against the circles fitted by rendering ({} frames):",
+        r.frames
+    );
+    println!(
+        "  centre: median {:.2} px, p90 {:.2}; mean offset (fitted − marked) ({:+.2}, {:+.2}) px, median {:.2} px about it",
+        r.centre_median_px,
+        r.centre_p90_px,
+        r.centre_mean_offset_px[0],
+        r.centre_mean_offset_px[1],
+        r.centre_median_about_offset_px
+    );
+    println!(
+        "  radius: median {:.2} %, p90 {:.2} %; mean offset {:+.2} px",
+        r.radius_median_pct, r.radius_p90_pct, r.radius_mean_offset_px
+    );
+    println!(
+        "  RMS over the 2a window: {:.2} at the marks, {:.2} at the fits (medians, 0–255)",
+        r.rms_marked_median, r.rms_fitted_median
+    );
+    println!(
+        "  the fit on frames rendered at the fitted circles with noise of its residual: centre {:.2} px, radius {:.2} % (medians)",
+        r.check_centre_median_px, r.check_radius_median_pct
+    );
 }
 
 /// Taxim 1.4.1's CPU render of one 640×480 frame of the same ball press on the 2-core machine

@@ -18,7 +18,7 @@ use sparsh_scene::{Grid, MarkerGrid, OpticsModel, OpticsSpec, SensorConfig};
 
 pub use calibrated::{CalibratedRenderer, Calibration, ColourMap, FittedLights};
 pub use gpu::{GpuContext, GpuError, GpuRenderer};
-pub use pack::{CalibrationPack, FrameSet, PackError};
+pub use pack::{CalibrationPack, Circle, FrameSet, PackError};
 pub use photometric::PhotometricRenderer;
 
 /// One of the image-formation models, behind one `render` call.

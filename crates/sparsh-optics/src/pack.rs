@@ -61,6 +61,15 @@ pub struct PackError {
     pub message: String,
 }
 
+/// A contact circle in a pack's pixels.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct Circle {
+    /// Centre (pixels: x = column, y = row).
+    pub centre_px: [f64; 2],
+    /// Radius (pixels).
+    pub radius_px: f64,
+}
+
 /// A calibration pack in memory (images in RGB).
 #[derive(Debug, Clone)]
 pub struct CalibrationPack {
@@ -157,6 +166,14 @@ impl CalibrationPack {
             self.background.width() as usize,
             self.background.height() as usize,
         )
+    }
+
+    /// The contact circle the pack marks on frame `k`.
+    pub fn marked_circle(&self, k: usize) -> Circle {
+        Circle {
+            centre_px: self.centers_px[k],
+            radius_px: self.radii_px[k],
+        }
     }
 }
 

@@ -14,7 +14,8 @@ use crate::calibrated::{
     CalibratedRenderer, Calibration, ColourMap, FittedLights, MapFitter, attenuation,
 };
 use crate::metrics::{Scores, crop, scores};
-use crate::pack::CalibrationPack;
+use crate::noise::gaussian;
+use crate::pack::{CalibrationPack, Circle};
 use crate::photometric::{light_shares, shadow_settings};
 use crate::shadow::{HeightField, cell_visibilities};
 
@@ -31,6 +32,45 @@ pub struct BallSetup {
     pub mm_per_px: f64,
     /// The surface under the ball.
     pub mechanics: BallMechanics,
+}
+
+impl BallSetup {
+    /// The set-up a calibration was fitted with, as its `map.json` records it
+    /// (`provenance.ball_radius_mm`, `provenance.mm_per_px`, and [`recorded_mechanics`]).
+    pub fn recorded(calibration: &Calibration) -> Result<BallSetup, String> {
+        let positive = |key: &str| -> Result<f64, String> {
+            let v = calibration.provenance.get(key);
+            v.and_then(|v| v.as_f64())
+                .filter(|x| x.is_finite() && *x > 0.0)
+                .ok_or_else(|| {
+                    format!(
+                        "map.json: provenance.{key}: expected a number > 0, got {}",
+                        v.map_or("nothing".into(), |v| v.to_string())
+                    )
+                })
+        };
+        Ok(BallSetup {
+            ball_radius_mm: positive("ball_radius_mm")?,
+            mm_per_px: positive("mm_per_px")?,
+            mechanics: recorded_mechanics(calibration)?,
+        })
+    }
+}
+
+/// The mechanics a calibration was fitted under (`provenance.mechanics` of its `map.json`;
+/// Hertz when absent, as every calibration before the field was).
+pub fn recorded_mechanics(calibration: &Calibration) -> Result<BallMechanics, String> {
+    match calibration.provenance.get("mechanics") {
+        None => Ok(BallMechanics::Hertz),
+        Some(v) => {
+            let mechanics: BallMechanics = serde_json::from_value(v.clone())
+                .map_err(|e| format!("map.json: provenance.mechanics: {e}"))?;
+            mechanics
+                .check()
+                .map_err(|e| format!("map.json: provenance.{e}"))?;
+            Ok(mechanics)
+        }
+    }
 }
 
 /// Options of the map fit.
@@ -57,23 +97,32 @@ pub fn frame_surface_uz(
     k: usize,
     setup: BallSetup,
 ) -> Result<(Grid, Vec<f64>), String> {
-    let (w, h) = pack.size_px();
+    circle_surface_uz(pack.size_px(), pack.marked_circle(k), setup)
+        .map_err(|e| format!("touch_radius: frame {k}: {e}"))
+}
+
+/// The sensor grid of a `(width, height)` pixel image and the u_z field under `setup.mechanics`
+/// of a ball whose contact circle is `circle`.
+fn circle_surface_uz(
+    (w, h): (usize, usize),
+    circle: Circle,
+    setup: BallSetup,
+) -> Result<(Grid, Vec<f64>), String> {
     let grid = Grid {
         nx: w,
         ny: h,
         cell_mm: setup.mm_per_px,
     };
-    let c = pack.centers_px[k];
+    let c = circle.centre_px;
     // Pixel i's centre is x_mm(i); the pack's coordinates are pixel indices.
     let centre_mm = [
         (c[0] + 0.5 - w as f64 / 2.0) * setup.mm_per_px,
         (c[1] + 0.5 - h as f64 / 2.0) * setup.mm_per_px,
     ];
-    let a_mm = pack.radii_px[k] * setup.mm_per_px;
+    let a_mm = circle.radius_px * setup.mm_per_px;
     let uz = setup
         .mechanics
-        .uz_mm(grid, centre_mm, a_mm, setup.ball_radius_mm)
-        .map_err(|e| format!("touch_radius: frame {k}: {e}"))?;
+        .uz_mm(grid, centre_mm, a_mm, setup.ball_radius_mm)?;
     Ok((grid, uz))
 }
 
@@ -585,5 +634,359 @@ pub fn summarize(scores: &[FrameScore]) -> Summary {
         full_median,
         crop_mean,
         crop_median,
+    }
+}
+
+/// Largest and smallest steps (pixels) of [`fit_circle`]'s compass search.
+const FIT_STEPS_PX: (f64, f64) = (4.0, 1.0 / 32.0);
+/// Renders [`fit_circle`] may spend on one frame before it reports non-convergence.
+const FIT_MAX_RENDERS: usize = 800;
+
+/// A contact circle fitted to a frame by rendering it ([`fit_circle`]).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct CircleFit {
+    /// The circle the search started from (for a pack's frame, its mark).
+    pub start: Circle,
+    /// The circle whose render is closest to the frame.
+    pub fitted: Circle,
+    /// RMS difference (0–255 units) over the window between the frame and the render of
+    /// `start`, and of `fitted`.
+    pub rms_start: f64,
+    /// See `rms_start`.
+    pub rms_fitted: f64,
+    /// Renders the search took.
+    pub renders: usize,
+}
+
+/// Pixels (x, y) of the square of half-width 2a around `circle`, inside a `(w, h)` image: the
+/// window of the crop score ([`render_and_score`]).
+fn window(circle: Circle, (w, h): (usize, usize)) -> Vec<usize> {
+    let hw = 2.0 * circle.radius_px;
+    let span = |c: f64, n: usize| {
+        let lo = (c - hw).ceil().max(0.0) as usize;
+        let hi = ((c + hw).floor().max(0.0) as usize).min(n - 1);
+        lo..=hi
+    };
+    let (xs, ys) = (span(circle.centre_px[0], w), span(circle.centre_px[1], h));
+    ys.flat_map(|y| xs.clone().map(move |x| y * w + x))
+        .collect()
+}
+
+/// The linear render of a ball press whose contact circle is `circle`.
+fn render_circle(
+    renderer: &CalibratedRenderer,
+    size: (usize, usize),
+    circle: Circle,
+    setup: BallSetup,
+) -> Result<Vec<[f32; 3]>, String> {
+    let (grid, uz) = circle_surface_uz(size, circle, setup)?;
+    let zeros = vec![0.0; grid.len()];
+    Ok(renderer.render_linear(&Surface {
+        grid,
+        ux_mm: &zeros,
+        uy_mm: &zeros,
+        uz_mm: &uz,
+    }))
+}
+
+/// Fits the contact circle of `image` by rendering (analysis by synthesis): the centre and
+/// radius whose ball press, rendered by `renderer` under `setup.mechanics`, is closest to the
+/// image in RMS over the square of half-width 2a around `start` (a fixed window, so every
+/// candidate is scored on the same pixels). Compass search (Kolda, Lewis & Torczon, SIAM Review
+/// 45(3), 2003, §3): from `start`, each of centre x, centre y and radius is tried at ± the step,
+/// the best improvement is taken, and the step halves when none improves, from 4 px down to
+/// 1/32 px. Errors when the search has not converged within 800 renders, or when `start`
+/// cannot be rendered.
+pub fn fit_circle(
+    renderer: &CalibratedRenderer,
+    image: &RgbImage,
+    start: Circle,
+    setup: BallSetup,
+) -> Result<CircleFit, String> {
+    let size = (image.width() as usize, image.height() as usize);
+    let pixels = window(start, size);
+    let raw = image.as_raw();
+    let rms = |circle: Circle| -> Result<f64, String> {
+        let sim = render_circle(renderer, size, circle, setup)?;
+        let sum: f64 = pixels
+            .iter()
+            .map(|&p| {
+                (0..3)
+                    .map(|ch| (f64::from(sim[p][ch]) - f64::from(raw[3 * p + ch])).powi(2))
+                    .sum::<f64>()
+            })
+            .sum();
+        Ok((sum / (3 * pixels.len()) as f64).sqrt())
+    };
+    let rms_start = rms(start)?;
+    let mut renders = 1;
+    let (mut best, mut best_rms) = (start, rms_start);
+    let mut step = FIT_STEPS_PX.0;
+    while step >= FIT_STEPS_PX.1 {
+        let mut moved = None;
+        for (axis, sign) in [
+            (0, 1.0),
+            (0, -1.0),
+            (1, 1.0),
+            (1, -1.0),
+            (2, 1.0),
+            (2, -1.0),
+        ] {
+            let mut trial = best;
+            match axis {
+                2 => trial.radius_px += sign * step,
+                _ => trial.centre_px[axis] += sign * step,
+            }
+            renders += 1;
+            // A radius the ball cannot make is not a candidate.
+            if let Ok(e) = rms(trial)
+                && e < moved.map_or(best_rms, |(_, m)| m)
+            {
+                moved = Some((trial, e));
+            }
+        }
+        match moved {
+            Some((trial, e)) => (best, best_rms) = (trial, e),
+            None => step /= 2.0,
+        }
+        if renders > FIT_MAX_RENDERS {
+            return Err(format!(
+                "the circle fit did not converge in {FIT_MAX_RENDERS} renders (at step {step} px)"
+            ));
+        }
+    }
+    Ok(CircleFit {
+        start,
+        fitted: best,
+        rms_start,
+        rms_fitted: best_rms,
+        renders,
+    })
+}
+
+/// A frame rendered at `circle` with white Gaussian noise of standard deviation `noise_std`
+/// (0–255 units, seeded by `seed`), rounded to 8 bits: the check of [`fit_circle`]'s precision.
+pub fn noisy_render(
+    renderer: &CalibratedRenderer,
+    size: (usize, usize),
+    circle: Circle,
+    setup: BallSetup,
+    noise_std: f64,
+    seed: u64,
+) -> Result<RgbImage, String> {
+    let sim = render_circle(renderer, size, circle, setup)?;
+    let raw: Vec<u8> = sim
+        .iter()
+        .enumerate()
+        .flat_map(|(p, px)| {
+            std::array::from_fn::<u8, 3, _>(|ch| {
+                let n = noise_std * gaussian(seed, 0, (3 * p + ch) as u64);
+                (f64::from(px[ch]) + n).round().clamp(0.0, 255.0) as u8
+            })
+        })
+        .collect();
+    Ok(RgbImage::from_raw(size.0 as u32, size.1 as u32, raw).expect("size matches"))
+}
+
+/// One frame's mark against the circle fitted by rendering, and the fit's precision there.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct FrameRefit {
+    /// Index of the frame in the pack.
+    pub frame: usize,
+    /// The fit to the real frame, started from its mark.
+    pub fit: CircleFit,
+    /// The same fit on a frame rendered at the fitted circle with white noise of the real
+    /// fit's residual RMS, started from the mark again: its error is the fit's own.
+    pub check: CircleFit,
+}
+
+/// Fits frame `k`'s circle by rendering, from its mark ([`fit_circle`]), then checks the fit on
+/// a frame rendered at the fitted circle with noise of the fit's residual ([`noisy_render`],
+/// seeded by `k`).
+pub fn refit_frame(
+    renderer: &CalibratedRenderer,
+    pack: &CalibrationPack,
+    k: usize,
+    setup: BallSetup,
+) -> Result<FrameRefit, String> {
+    let mark = pack.marked_circle(k);
+    let fit = fit_circle(renderer, &pack.frames[k], mark, setup)?;
+    let synthetic = noisy_render(
+        renderer,
+        pack.size_px(),
+        fit.fitted,
+        setup,
+        fit.rms_fitted,
+        k as u64,
+    )?;
+    let check = fit_circle(renderer, &synthetic, mark, setup)
+        .map_err(|e| format!("precision check: {e}"))?;
+    Ok(FrameRefit {
+        frame: k,
+        fit,
+        check,
+    })
+}
+
+/// The marks of a pack against the circles fitted by rendering ([`refit_frame`]).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct RefitSummary {
+    /// Frames fitted.
+    pub frames: usize,
+    /// Median and 90th percentile of the distance between marked and fitted centre (px).
+    pub centre_median_px: f64,
+    /// See `centre_median_px`.
+    pub centre_p90_px: f64,
+    /// Mean of fitted − marked centre (px): the part a model trained on the marks learns.
+    pub centre_mean_offset_px: [f64; 2],
+    /// Median distance after removing that mean offset (px).
+    pub centre_median_about_offset_px: f64,
+    /// Median and 90th percentile of |fitted − marked radius| / marked radius (%).
+    pub radius_median_pct: f64,
+    /// See `radius_median_pct`.
+    pub radius_p90_pct: f64,
+    /// Mean of fitted − marked radius (px).
+    pub radius_mean_offset_px: f64,
+    /// Median RMS difference over the window at the marks and at the fitted circles (0–255).
+    pub rms_marked_median: f64,
+    /// See `rms_marked_median`.
+    pub rms_fitted_median: f64,
+    /// Median centre error (px) and radius error (%) of the precision checks.
+    pub check_centre_median_px: f64,
+    /// See `check_centre_median_px`.
+    pub check_radius_median_pct: f64,
+}
+
+/// The `q` quantile of `values`, linearly interpolated between order statistics (numpy's
+/// default); NaN for none.
+fn quantile(mut values: Vec<f64>, q: f64) -> f64 {
+    if values.is_empty() {
+        return f64::NAN;
+    }
+    values.sort_by(f64::total_cmp);
+    let pos = q * (values.len() - 1) as f64;
+    let (lo, hi) = (pos.floor() as usize, pos.ceil() as usize);
+    values[lo] + (values[hi] - values[lo]) * (pos - lo as f64)
+}
+
+/// Summarises per-frame refits: distances, offsets and radius errors of the marks against the
+/// fitted circles, and of the precision checks against their known circles.
+pub fn summarize_refits(refits: &[FrameRefit]) -> RefitSummary {
+    let n = refits.len().max(1) as f64;
+    let dist = |a: Circle, b: Circle| {
+        (a.centre_px[0] - b.centre_px[0]).hypot(a.centre_px[1] - b.centre_px[1])
+    };
+    let radius_pct = |truth: Circle, other: Circle| {
+        100.0 * (other.radius_px - truth.radius_px).abs() / truth.radius_px
+    };
+    let offset: [f64; 2] = std::array::from_fn(|i| {
+        refits
+            .iter()
+            .map(|r| r.fit.fitted.centre_px[i] - r.fit.start.centre_px[i])
+            .sum::<f64>()
+            / n
+    });
+    let centres: Vec<f64> = refits
+        .iter()
+        .map(|r| dist(r.fit.fitted, r.fit.start))
+        .collect();
+    let about_offset: Vec<f64> = refits
+        .iter()
+        .map(|r| {
+            let d = |i: usize| r.fit.fitted.centre_px[i] - r.fit.start.centre_px[i] - offset[i];
+            d(0).hypot(d(1))
+        })
+        .collect();
+    let radii: Vec<f64> = refits
+        .iter()
+        .map(|r| radius_pct(r.fit.start, r.fit.fitted))
+        .collect();
+    let each = |f: &dyn Fn(&FrameRefit) -> f64| refits.iter().map(f).collect::<Vec<f64>>();
+    RefitSummary {
+        frames: refits.len(),
+        centre_median_px: quantile(centres.clone(), 0.5),
+        centre_p90_px: quantile(centres, 0.9),
+        centre_mean_offset_px: offset,
+        centre_median_about_offset_px: quantile(about_offset, 0.5),
+        radius_median_pct: quantile(radii.clone(), 0.5),
+        radius_p90_pct: quantile(radii, 0.9),
+        radius_mean_offset_px: refits
+            .iter()
+            .map(|r| r.fit.fitted.radius_px - r.fit.start.radius_px)
+            .sum::<f64>()
+            / n,
+        rms_marked_median: quantile(each(&|r| r.fit.rms_start), 0.5),
+        rms_fitted_median: quantile(each(&|r| r.fit.rms_fitted), 0.5),
+        check_centre_median_px: quantile(each(&|r| dist(r.check.fitted, r.fit.fitted)), 0.5),
+        check_radius_median_pct: quantile(each(&|r| radius_pct(r.fit.fitted, r.check.fitted)), 0.5),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn refit(
+        start: ([f64; 2], f64),
+        fitted: ([f64; 2], f64),
+        check: ([f64; 2], f64),
+    ) -> FrameRefit {
+        let circle = |(centre_px, radius_px): ([f64; 2], f64)| Circle {
+            centre_px,
+            radius_px,
+        };
+        let fit = |s, f| CircleFit {
+            start: circle(s),
+            fitted: circle(f),
+            rms_start: 4.0,
+            rms_fitted: 3.0,
+            renders: 10,
+        };
+        FrameRefit {
+            frame: 0,
+            fit: fit(start, fitted),
+            check: fit(start, check),
+        }
+    }
+
+    /// Three frames worked by hand: fitted − marked centres (3, 4), (0, 0) and (−6, 8) are 5, 0
+    /// and 10 px off (median 5, p90 at 0.8 between 5 and 10: 9); their mean offset is (−1, 4),
+    /// about which the distances are √(16 + 0), √(1 + 16), √(25 + 16) (median √17); radii 60 →
+    /// 63, 50 → 50, 40 → 38 are 5 %, 0 % and 5 % off (mean offset +1/3 px).
+    #[test]
+    fn refit_summaries_match_hand_computed_statistics() {
+        let refits = [
+            refit(
+                ([10.0, 10.0], 60.0),
+                ([13.0, 14.0], 63.0),
+                ([13.0, 14.1], 63.0),
+            ),
+            refit(
+                ([50.0, 50.0], 50.0),
+                ([50.0, 50.0], 50.0),
+                ([50.3, 50.4], 50.5),
+            ),
+            refit(
+                ([90.0, 90.0], 40.0),
+                ([84.0, 98.0], 38.0),
+                ([84.0, 98.0], 38.0),
+            ),
+        ];
+        let s = summarize_refits(&refits);
+        assert_eq!(s.frames, 3);
+        assert!((s.centre_median_px - 5.0).abs() < 1e-12, "{s:?}");
+        assert!((s.centre_p90_px - 9.0).abs() < 1e-12, "{s:?}");
+        assert!((s.centre_mean_offset_px[0] + 1.0).abs() < 1e-12, "{s:?}");
+        assert!((s.centre_mean_offset_px[1] - 4.0).abs() < 1e-12, "{s:?}");
+        assert!(
+            (s.centre_median_about_offset_px - 17f64.sqrt()).abs() < 1e-12,
+            "{s:?}"
+        );
+        assert!((s.radius_median_pct - 5.0).abs() < 1e-12, "{s:?}");
+        assert!((s.radius_mean_offset_px - 1.0 / 3.0).abs() < 1e-12, "{s:?}");
+        // checks off by 0.1, 0.5 and 0 px; radius by 0, 1 and 0 %
+        assert!((s.check_centre_median_px - 0.1).abs() < 1e-9, "{s:?}");
+        assert_eq!(s.check_radius_median_pct, 0.0);
+        assert_eq!((s.rms_marked_median, s.rms_fitted_median), (4.0, 3.0));
     }
 }

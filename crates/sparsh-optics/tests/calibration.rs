@@ -5,8 +5,11 @@ use std::path::Path;
 
 use npyz::WriterBuilder;
 use sparsh_optics::ball::BallMechanics;
-use sparsh_optics::sim2real::{BallSetup, FitOptions, calibrate_pack, render_and_score, summarize};
-use sparsh_optics::{Calibration, CalibrationPack, Surface};
+use sparsh_optics::sim2real::{
+    BallSetup, FitOptions, calibrate_pack, fit_circle, refit_frame, render_and_score, summarize,
+    summarize_refits,
+};
+use sparsh_optics::{Calibration, CalibrationPack, Circle, Surface};
 
 const W: usize = 96;
 const H: usize = 72;
@@ -231,6 +234,80 @@ fn calibration_recovers_a_known_map_on_held_out_frames() {
     let summary = summarize(&scores);
     assert!(summary.crop_mean.mae < 0.6, "{summary:?}");
     assert!(summary.crop_mean.ssim > 0.99, "{summary:?}");
+}
+
+/// A circle off the pixel grid, drawn by the independent renderer above, is found by rendering
+/// with the map fitted on other frames, from a start 3.6 px and 1.25 px of radius away; and a
+/// pack whose marks were moved is refitted back to where its images were drawn.
+#[test]
+fn the_circle_fit_finds_the_drawn_circle_from_a_wrong_mark() {
+    let dir = tempfile::tempdir().unwrap();
+    write_pack(&pack_path(&dir), None, None, None);
+    let mut pack = CalibrationPack::read(&pack_path(&dir)).unwrap();
+    let even: Vec<usize> = (0..pack.frames.len()).step_by(2).collect();
+    let cal = calibrate_pack(&pack, &even, SETUP, FitOptions::default()).unwrap();
+    let renderer = sparsh_optics::sim2real::pack_renderer(&cal, &pack, SETUP, None);
+    let truth = Circle {
+        centre_px: [41.3, 35.6],
+        radius_px: 9.25,
+    };
+    let image = image::RgbImage::from_raw(
+        W as u32,
+        H as u32,
+        true_frame(truth.centre_px, truth.radius_px),
+    )
+    .unwrap();
+    let start = Circle {
+        centre_px: [44.3, 33.6],
+        radius_px: 10.5,
+    };
+    let fit = fit_circle(&renderer, &image, start, SETUP).unwrap();
+    let dx = fit.fitted.centre_px[0] - truth.centre_px[0];
+    let dy = fit.fitted.centre_px[1] - truth.centre_px[1];
+    assert!(dx.hypot(dy) < 0.2, "{fit:?}");
+    assert!(
+        (fit.fitted.radius_px - truth.radius_px).abs() < 0.2,
+        "{fit:?}"
+    );
+    assert!(fit.rms_fitted < 0.5 * fit.rms_start, "{fit:?}");
+    // Marks moved by (+3, −2) px and +1.5 px of radius on two held-out frames.
+    let moved = [1, 3];
+    let drawn: Vec<Circle> = moved.iter().map(|&k| pack.marked_circle(k)).collect();
+    for &k in &moved {
+        pack.centers_px[k][0] += 3.0;
+        pack.centers_px[k][1] -= 2.0;
+        pack.radii_px[k] += 1.5;
+    }
+    let refits: Vec<_> = moved
+        .iter()
+        .map(|&k| refit_frame(&renderer, &pack, k, SETUP).unwrap())
+        .collect();
+    for (r, d) in refits.iter().zip(&drawn) {
+        let e = (r.fit.fitted.centre_px[0] - d.centre_px[0])
+            .hypot(r.fit.fitted.centre_px[1] - d.centre_px[1]);
+        assert!(e < 0.2, "{r:?}");
+        assert!((r.fit.fitted.radius_px - d.radius_px).abs() < 0.2, "{r:?}");
+    }
+    let summary = summarize_refits(&refits);
+    // The marks are 13^½ px and 1.5 px off what the images show, the same way on both frames.
+    assert!(
+        (summary.centre_median_px - 13f64.sqrt()).abs() < 0.2,
+        "{summary:?}"
+    );
+    assert!(
+        (summary.centre_mean_offset_px[0] + 3.0).abs() < 0.2,
+        "{summary:?}"
+    );
+    assert!(
+        (summary.centre_mean_offset_px[1] - 2.0).abs() < 0.2,
+        "{summary:?}"
+    );
+    assert!(summary.centre_median_about_offset_px < 0.2, "{summary:?}");
+    assert!(
+        (summary.radius_mean_offset_px + 1.5).abs() < 0.2,
+        "{summary:?}"
+    );
+    assert!(summary.check_centre_median_px < 0.2, "{summary:?}");
 }
 
 #[test]

@@ -35,6 +35,11 @@ pub struct RealConfig {
     pub folds: usize,
     /// Training of each fold's CNN.
     pub train: TrainOptions,
+    /// A calibration (`sparsh calibrate` directory) whose renders re-fit each scored frame's
+    /// circle from its mark (`sim2real --refit`): the row of the marks' own noise, the fitted
+    /// circles scored as predictions of the marks.
+    #[serde(default)]
+    pub marks_calibration: Option<PathBuf>,
 }
 
 /// One `[[variant]]`.
@@ -221,7 +226,10 @@ impl AblationConfig {
             keep_data: file.keep_data,
             cnn: file.cnn,
             probe,
-            real: file.real,
+            real: RealConfig {
+                marks_calibration: file.real.marks_calibration.map(|c| dir.join(c)),
+                ..file.real
+            },
             variants: file.variant,
         })
     }

@@ -25,8 +25,13 @@ use std::path::Path;
 use std::time::Instant;
 
 use burn::prelude::*;
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
+use sparsh_optics::Calibration;
 use sparsh_optics::pack::CalibrationPack;
+use sparsh_optics::sim2real::{
+    BallSetup, FrameRefit, pack_renderer, refit_frame, summarize_refits,
+};
 use sparsh_ssl::data::Stacking;
 use sparsh_ssl::device::seeded_module;
 use sparsh_ssl::probe::{AttentiveProbe, AttentiveProbeConfig};
@@ -54,6 +59,9 @@ pub enum RowKind {
     RealConstant,
     /// The CNN trained on the pack's other frames.
     RealCeiling,
+    /// The circles the calibrated optics fit to each scored frame by rendering, scored against
+    /// the marks: the marks' own noise.
+    MarksRefit,
 }
 
 impl RowKind {
@@ -65,6 +73,7 @@ impl RowKind {
             RowKind::Classical => "classical",
             RowKind::RealConstant => "real constant",
             RowKind::RealCeiling => "real ceiling",
+            RowKind::MarksRefit => "label noise",
         }
     }
 }
@@ -213,6 +222,23 @@ pub fn run(
         Some(p) if config.variants.iter().any(|v| v.probe) => Some(ProbeEncoder::load(config, p)?),
         _ => None,
     };
+    let marks = config
+        .real
+        .marks_calibration
+        .as_ref()
+        .map(|calib| {
+            let bad = |e: String| {
+                Error::config(
+                    &config.path,
+                    "real.marks_calibration",
+                    format!("{}: {e}", calib.display()),
+                )
+            };
+            let calibration = Calibration::load(calib).map_err(bad)?;
+            let setup = BallSetup::recorded(&calibration).map_err(bad)?;
+            Ok::<_, Error>((calibration, setup))
+        })
+        .transpose()?;
     let mut real_inputs = Vec::new();
     let real = data::real(&config.pack, &pack, &test, config.input_size, |f, bg| {
         if let Some(e) = &encoder {
@@ -283,6 +309,26 @@ pub fn run(
     };
     rows.push(real_constant(&pack, &test, &real, &eff));
     rows.push(ceiling);
+    if let Some((calibration, setup)) = &marks {
+        let record = out.join("real").join("marks.json");
+        let row = if opts.resume && record.is_file() {
+            let text = std::fs::read_to_string(&record).map_err(|e| Error::file(&record, e))?;
+            serde_json::from_str(&text).map_err(|e| Error::file(&record, e))?
+        } else {
+            let row = marks_refit(
+                (calibration, *setup),
+                (&config.pack, &pack),
+                &test,
+                &real,
+                &eff,
+                log,
+            )?;
+            let json = serde_json::to_vec_pretty(&row).map_err(|e| Error::file(&record, e))?;
+            crate::io::write_atomic(&record, &json)?;
+            row
+        };
+        rows.push(row);
+    }
     report::write(out, &rows)?;
     Ok(rows)
 }
@@ -785,6 +831,63 @@ fn summary(r: &Row) -> String {
         "{}: {}: real centre {:.1} px, radius {:.1} % (medians){val}; {:.0} s",
         r.variant, r.model, r.scores.centre_median_px, r.scores.radius_median_pct, r.seconds
     )
+}
+
+/// The marks' own noise: each scored frame's circle fitted by rendering it with `calibration`
+/// (under `setup`, the ball, pitch and mechanics its `map.json` records), from its mark
+/// ([`sparsh_optics::sim2real::refit_frame`]), the fitted circles scored as predictions of the
+/// marks. The fit's own error, on frames rendered at the fitted circles with noise of its
+/// residual, is logged.
+fn marks_refit(
+    (calibration, setup): (&Calibration, BallSetup),
+    (pack_path, pack): (&Path, &CalibrationPack),
+    test: &[usize],
+    real: &CircleFrames,
+    eff: &Effective,
+    log: &dyn Fn(&str),
+) -> Result<Row, Error> {
+    let start = Instant::now();
+    let renderer = pack_renderer(calibration, pack, setup, None);
+    let refits: Vec<FrameRefit> = test
+        .par_iter()
+        .map(|&k| {
+            refit_frame(&renderer, pack, k, setup)
+                .map_err(|e| Error::file(pack_path, format!("frame {k}: label noise: {e}")))
+        })
+        .collect::<Result<_, _>>()?;
+    let fitted: Vec<Circle> = refits
+        .iter()
+        .map(|r| Circle {
+            cx_px: r.fit.fitted.centre_px[0],
+            cy_px: r.fit.fitted.centre_px[1],
+            r_px: r.fit.fitted.radius_px,
+        })
+        .collect();
+    let errors = errors_of(&fitted, &real.circles);
+    let summary = summarize_refits(&refits);
+    log(&format!(
+        "label noise: fitted circles against the marks: centre {:.2} px (about the mean offset \
+         ({:+.2}, {:+.2}) px: {:.2}), radius {:.2} % (medians); the fit on renders at its \
+         circles with noise of its residual: {:.2} px, {:.2} %",
+        summary.centre_median_px,
+        summary.centre_mean_offset_px[0],
+        summary.centre_mean_offset_px[1],
+        summary.centre_median_about_offset_px,
+        summary.radius_median_pct,
+        summary.check_centre_median_px,
+        summary.check_radius_median_pct
+    ));
+    Ok(Row {
+        variant: "real frames".into(),
+        model: "calibrated optics fit".into(),
+        kind: RowKind::MarksRefit,
+        train_frames: 0,
+        seeds: 1,
+        mean_best_epoch: 0.0,
+        scores: metrics::score(&[errors], eff.bootstrap, 7),
+        synthetic_val: None,
+        seconds: start.elapsed().as_secs_f64(),
+    })
 }
 
 /// What is trivial on the pack: the mean circle of its frames that are not scored (the even

@@ -1,6 +1,7 @@
 //! The learned contact-circle regressors: a small convolutional network on the difference image,
 //! and Sparsh's attentive probe on a frozen encoder's tokens. Both regress the circle's centre
-//! and radius standardized with the training circles' statistics (MSE), AdamW with a half-cosine
+//! and radius standardized with the training circles' statistics (squared error, the centre
+//! weighted to count in the radius' pixels, `CircleScale::loss_weights`), AdamW with a half-cosine
 //! learning rate, and keep the epoch best on a validation split the real frames never enter.
 
 use burn::module::Module;
@@ -152,6 +153,18 @@ impl CircleScale {
         ]
     }
 
+    /// Weights of the encoded errors in the loss: the centre's normalized coordinates times
+    /// half the frame over the radius deviation, so each of centre x, centre y and radius
+    /// counts its error in the same pixels (unweighted, a centre off by one radius deviation
+    /// would cost (2σ_r/width)² of what the radius off by as much costs).
+    fn loss_weights(&self) -> [f32; 3] {
+        [
+            (self.size[0] / 2.0 / self.radius_sd) as f32,
+            (self.size[1] / 2.0 / self.radius_sd) as f32,
+            1.0,
+        ]
+    }
+
     fn decode(&self, z: &[f32]) -> Circle {
         Circle {
             cx_px: (z[0] as f64 + 1.0) * self.size[0] / 2.0 - 0.5,
@@ -226,6 +239,8 @@ pub fn fit<M: Module + Clone>(
         let t: Vec<f32> = pairs.iter().flat_map(|p| scale.encode(&p.1)).collect();
         Tensor::<1>::from_floats(t.as_slice(), device).reshape([pairs.len(), 3])
     };
+    let weights = scale.loss_weights();
+    let weight = Tensor::<1>::from_floats(weights.as_slice(), &device).reshape([1, 3]);
     let mut optim = AdamWConfig::new().with_weight_decay(0.01).init();
     let steps_per_epoch = train.len().div_ceil(opts.batch_size).max(1);
     let total = (opts.epochs * steps_per_epoch) as f64;
@@ -236,7 +251,8 @@ pub fn fit<M: Module + Clone>(
         for chunk in order.chunks(opts.batch_size) {
             let pairs: Vec<&(usize, Circle)> = chunk.iter().map(|&k| &train[k]).collect();
             let rows: Vec<usize> = pairs.iter().map(|p| p.0).collect();
-            let diff = forward(&model, &rows, &device) - targets(&pairs, &device);
+            let diff =
+                (forward(&model, &rows, &device) - targets(&pairs, &device)) * weight.clone();
             let loss = (diff.clone() * diff).mean();
             let grads = GradientsParams::from_grads(loss.backward(), &model);
             let lr = 0.5 * opts.lr * (1.0 + (std::f64::consts::PI * step as f64 / total).cos());
@@ -253,7 +269,9 @@ pub fn fit<M: Module + Clone>(
             .zip(val)
             .map(|(p, v)| {
                 let (a, b) = (scale.encode(p), scale.encode(&v.1));
-                (0..3).map(|k| (a[k] - b[k]).powi(2) as f64).sum::<f64>()
+                (0..3)
+                    .map(|k| ((a[k] - b[k]) * weights[k]).powi(2) as f64)
+                    .sum::<f64>()
             })
             .sum::<f64>()
             / val.len() as f64;
@@ -355,6 +373,23 @@ mod tests {
             r_px: 50.0,
         };
         assert_eq!(s.encode(&mid)[..2], [0.0, -1.0]);
+        // Weighted, a centre 5 px off along x, along y, and a radius 5 px off cost the same:
+        // 5 px over the radii's deviation of 10 px.
+        let w = s.loss_weights();
+        let off = |dx: f64, dy: f64, dr: f64| {
+            let (a, b) = (
+                s.encode(&circles[1]),
+                s.encode(&Circle {
+                    cx_px: 300.0 + dx,
+                    cy_px: 70.0 + dy,
+                    r_px: 60.0 + dr,
+                }),
+            );
+            (0..3).map(|k| ((b[k] - a[k]) * w[k]).powi(2)).sum::<f32>()
+        };
+        for cost in [off(5.0, 0.0, 0.0), off(0.0, 5.0, 0.0), off(0.0, 0.0, 5.0)] {
+            assert!((cost - 0.25).abs() < 1e-4, "{cost}");
+        }
     }
 
     /// Bright discs on a flat image: the CNN must find where and how large they are, far better

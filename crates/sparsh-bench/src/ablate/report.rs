@@ -42,6 +42,7 @@ fn ordered(rows: &[Row]) -> Vec<&Row> {
         RowKind::Synthetic => 2,
         RowKind::RealConstant => 3,
         RowKind::RealCeiling => 4,
+        RowKind::MarksRefit => 5,
     };
     let mut v: Vec<&Row> = rows.iter().collect();
     v.sort_by_key(|r| rank(r));
@@ -53,6 +54,9 @@ fn label(r: &Row) -> String {
         RowKind::Synthetic => format!("{}: {}", r.variant, r.model),
         RowKind::RealCeiling => "real frames (held out): cnn".into(),
         RowKind::RealConstant => format!("constant ({} real frames not scored)", r.train_frames),
+        RowKind::MarksRefit => {
+            "label noise: circles fitted by rendering each frame, against its mark".into()
+        }
         k => format!("{} ({} frames)", k.name(), r.variant),
     }
 }
