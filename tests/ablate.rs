@@ -139,6 +139,61 @@ fn ablate_trains_on_synthetic_frames_scores_real_ones_and_resumes() {
         "{}",
         stderr(&run)
     );
+    // every row of ablation.csv is its recorded predictions scored against the pack's marks
+    // (pooled seeds and frames: median centre error, median radius error in %, the share within
+    // 3 px and 5 %), recomputed here
+    let marks = sparsh_optics::CalibrationPack::read(&pack).unwrap();
+    let mut checked = 0;
+    for (file, variant) in [
+        ("variants/base/predictions.csv", "base"),
+        (
+            "variants/photometric_optics/predictions.csv",
+            "photometric optics",
+        ),
+        ("real/predictions.csv", "real frames"),
+        ("real/marks_predictions.csv", "real frames"),
+    ] {
+        let mut errors: std::collections::BTreeMap<String, Vec<(f64, f64)>> = Default::default();
+        for r in csv::Reader::from_path(out.join(file)).unwrap().records() {
+            let r = r.unwrap();
+            let k: usize = r[2].parse().unwrap();
+            assert_eq!(k % 2, 1, "{r:?}: only odd frames are scored");
+            let v = |i: usize| -> f64 { r[i].parse().unwrap() };
+            let [mx, my] = marks.centers_px[k];
+            let mr = marks.radii_px[k];
+            errors
+                .entry(r[0].to_string())
+                .or_default()
+                .push(((v(3) - mx).hypot(v(4) - my), 100.0 * (v(5) - mr).abs() / mr));
+        }
+        for (model, errs) in errors {
+            let median = |mut v: Vec<f64>| {
+                v.sort_by(f64::total_cmp);
+                let n = v.len();
+                (v[(n - 1) / 2] + v[n / 2]) / 2.0
+            };
+            let within =
+                errs.iter().filter(|e| e.0 <= 3.0 && e.1 <= 5.0).count() as f64 / errs.len() as f64;
+            let row = table
+                .iter()
+                .find(|r| &r[0] == variant && r[1] == model)
+                .unwrap_or_else(|| panic!("{file}: {model} has no row"));
+            let csv = |i: usize| -> f64 { row[i].parse().unwrap() };
+            assert_eq!(errs.len(), 24 * csv(4) as usize, "{row:?}");
+            assert!(
+                (median(errs.iter().map(|e| e.0).collect()) - csv(6)).abs() < 1e-4,
+                "{row:?}"
+            );
+            assert!(
+                (median(errs.iter().map(|e| e.1).collect()) - csv(12)).abs() < 1e-4,
+                "{row:?}"
+            );
+            assert!((within - csv(16)).abs() < 1e-4, "{row:?}");
+            checked += 1;
+        }
+    }
+    // constant, classical, cnn, two probes; cnn; ceiling; the marks' fit
+    assert_eq!(checked, 8);
     for f in [
         "ablation.md",
         "ablation.png",

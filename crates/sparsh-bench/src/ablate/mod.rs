@@ -290,7 +290,12 @@ pub fn run(
         let text = std::fs::read_to_string(&record).map_err(|e| Error::file(&record, e))?;
         serde_json::from_str(&text).map_err(|e| Error::file(&record, e))?
     } else {
-        let row = real_ceiling(config, &pack, &test, &real, &eff, log)?;
+        let (row, predictions) = real_ceiling(config, &pack, &test, &real, &eff, log)?;
+        write_predictions(
+            &out.join("real").join("predictions.csv"),
+            &real,
+            &predictions,
+        )?;
         if let (Some(enc), Some(popts)) = (encoder.as_ref(), eff.probe) {
             real_probe_ceiling(
                 config,
@@ -315,13 +320,18 @@ pub fn run(
             let text = std::fs::read_to_string(&record).map_err(|e| Error::file(&record, e))?;
             serde_json::from_str(&text).map_err(|e| Error::file(&record, e))?
         } else {
-            let row = marks_refit(
+            let (row, fitted) = marks_refit(
                 (calibration, *setup),
                 (&config.pack, &pack),
                 &test,
                 &real,
                 &eff,
                 log,
+            )?;
+            write_predictions(
+                &out.join("real").join("marks_predictions.csv"),
+                &real,
+                &[("calibrated optics fit".into(), 0, fitted)],
             )?;
             let json = serde_json::to_vec_pretty(&row).map_err(|e| Error::file(&record, e))?;
             crate::io::write_atomic(&record, &json)?;
@@ -553,6 +563,7 @@ fn run_variant(
         start.elapsed().as_secs_f64()
     ));
     let mut rows = Vec::new();
+    let mut predictions: Vec<SeedPredictions> = Vec::new();
     let pack_size = [geometry.width_px, geometry.height_px];
     let val_circles: Vec<Circle> = val.iter().map(|&k| frames.circles[k]).collect();
     let row = |model: &str,
@@ -577,6 +588,7 @@ fn run_variant(
         let train_circles: Vec<Circle> = train.iter().map(|&k| frames.circles[k]).collect();
         let mean = models::CircleScale::of(&train_circles, pack_size).mean();
         let constant = errors_of(&vec![mean; real.len()], &real.circles);
+        predictions.push(("constant".into(), 0, vec![mean; real.len()]));
         rows.push(row(
             "constant",
             RowKind::Constant,
@@ -616,6 +628,7 @@ fn run_variant(
             &val_preds,
             t,
         ));
+        predictions.push(("classical".into(), 0, preds));
     }
     // a learned row: every seed's real predictions, chosen epoch and validation predictions
     let mut learned =
@@ -625,6 +638,7 @@ fn run_variant(
             for seed in 0..eff.seeds as u64 {
                 let (preds, epoch, val) = train_seed(seed)?;
                 errors.push(errors_of(&preds, &real.circles));
+                predictions.push((name.into(), seed as usize, preds));
                 epochs.push(epoch);
                 val_preds.extend(val);
             }
@@ -738,6 +752,7 @@ fn run_variant(
             )
         })?;
     }
+    write_predictions(&dir.join("predictions.csv"), real, &predictions)?;
     if !config.keep_data {
         std::fs::remove_dir_all(&data_dir).map_err(|e| Error::file(&data_dir, e))?;
     }
@@ -833,6 +848,37 @@ fn summary(r: &Row) -> String {
     )
 }
 
+/// One model's real predictions for one training seed, in the order of the scored frames.
+type SeedPredictions = (String, usize, Vec<Circle>);
+
+/// Writes every recorded model's real predictions as CSV: `model,seed,frame,cx_px,cy_px,r_px`
+/// (pack pixels; `frame` is the pack's index), one row per seed and scored frame.
+fn write_predictions(
+    path: &Path,
+    real: &CircleFrames,
+    predictions: &[SeedPredictions],
+) -> Result<(), Error> {
+    let mut w = csv::Writer::from_writer(Vec::new());
+    let bad = |e: csv::Error| Error::file(path, e);
+    w.write_record(["model", "seed", "frame", "cx_px", "cy_px", "r_px"])
+        .map_err(bad)?;
+    for (model, seed, preds) in predictions {
+        for (p, frame) in preds.iter().zip(&real.groups) {
+            w.write_record([
+                model.clone(),
+                seed.to_string(),
+                frame.to_string(),
+                format!("{:.6}", p.cx_px),
+                format!("{:.6}", p.cy_px),
+                format!("{:.6}", p.r_px),
+            ])
+            .map_err(bad)?;
+        }
+    }
+    let bytes = w.into_inner().map_err(|e| Error::file(path, e))?;
+    crate::io::write_atomic(path, &bytes)
+}
+
 /// The marks' own noise: each scored frame's circle fitted by rendering it with `calibration`
 /// (under `setup`, the ball, pitch and mechanics its `map.json` records), from its mark
 /// ([`sparsh_optics::sim2real::refit_frame`]), the fitted circles scored as predictions of the
@@ -845,7 +891,7 @@ fn marks_refit(
     real: &CircleFrames,
     eff: &Effective,
     log: &dyn Fn(&str),
-) -> Result<Row, Error> {
+) -> Result<(Row, Vec<Circle>), Error> {
     let start = Instant::now();
     let renderer = pack_renderer(calibration, pack, setup, None);
     let refits: Vec<FrameRefit> = test
@@ -877,7 +923,7 @@ fn marks_refit(
         summary.check_centre_median_px,
         summary.check_radius_median_pct
     ));
-    Ok(Row {
+    let row = Row {
         variant: "real frames".into(),
         model: "calibrated optics fit".into(),
         kind: RowKind::MarksRefit,
@@ -887,7 +933,8 @@ fn marks_refit(
         scores: metrics::score(&[errors], eff.bootstrap, 7),
         synthetic_val: None,
         seconds: start.elapsed().as_secs_f64(),
-    })
+    };
+    Ok((row, fitted))
 }
 
 /// What is trivial on the pack: the mean circle of its frames that are not scored (the even
@@ -976,7 +1023,7 @@ fn real_ceiling(
     real: &CircleFrames,
     eff: &Effective,
     log: &dyn Fn(&str),
-) -> Result<Row, Error> {
+) -> Result<(Row, Vec<SeedPredictions>), Error> {
     let start = Instant::now();
     let all: Vec<usize> = (0..pack.frames.len()).collect();
     let frames = data::real(&config.pack, pack, &all, config.input_size, |_, _| Ok(()))?;
@@ -996,6 +1043,7 @@ fn real_ceiling(
     let mut errors = vec![Vec::with_capacity(test.len()); eff.seeds];
     let mut epochs = Vec::new();
     let mut train_frames = 0;
+    let mut predictions = Vec::new();
     for (seed, errs) in errors.iter_mut().enumerate() {
         let mut preds = vec![None; test.len()];
         for fold in 0..eff.folds {
@@ -1026,6 +1074,7 @@ fn real_ceiling(
             .map(|p| p.expect("every fold ran"))
             .collect();
         *errs = errors_of(&preds, &real.circles);
+        predictions.push(("cnn".to_string(), seed, preds));
     }
     let row = Row {
         variant: "real frames".into(),
@@ -1042,7 +1091,7 @@ fn real_ceiling(
         "real ceiling ({} folds): centre {:.1} px, radius {:.1} % (medians) in {:.0} s",
         eff.folds, row.scores.centre_median_px, row.scores.radius_median_pct, row.seconds
     ));
-    Ok(row)
+    Ok((row, predictions))
 }
 
 /// The probe's ceiling, a diagnosis logged beside the CNN's (not a row): the attentive probe on
