@@ -221,70 +221,58 @@ fn ablate_trains_on_synthetic_frames_scores_real_ones_and_resumes() {
 fn bad_ablation_files_get_one_line_errors() {
     let Some(pack) = pack() else { return };
     let tmp = tempfile::tempdir().unwrap();
-    let run = |extra: &str, needle: &str| {
-        let dir = tempfile::tempdir_in(tmp.path()).unwrap();
-        let cfg = config(dir.path(), &pack, extra);
-        let out = dir.path().join("run");
-        assert_user_error(
-            &sparsh(&[
-                "ablate",
-                "--config",
-                cfg.to_str().unwrap(),
-                "--out",
-                out.to_str().unwrap(),
-                "--quick",
-            ]),
-            needle,
-        );
+    // an ablation file with `extra` appended (and `from` replaced by `to`), and its output folder
+    let edited = |extra: &str, replace: Option<(&str, &str)>| {
+        let dir = tempfile::tempdir_in(tmp.path()).unwrap().keep();
+        let cfg = config(&dir, &pack, extra);
+        if let Some((from, to)) = replace {
+            let text = std::fs::read_to_string(&cfg).unwrap().replace(from, to);
+            std::fs::write(&cfg, text).unwrap();
+        }
+        (cfg, dir.join("run"))
     };
-    run("colour = 1\n", "colour");
-    run(
-        "[[variant]]\nname = \"no such key\"\nremove = [\"gel.hardness\"]\n",
-        "gel.hardness",
-    );
-    run("[[variant]]\nname = \"Base\"\n", "variant[2].name");
+    let ablate = |(cfg, out): &(PathBuf, PathBuf), quick: bool| {
+        let (c, o) = (cfg.to_str().unwrap(), out.to_str().unwrap());
+        let mut args = vec!["ablate", "--config", c, "--out", o];
+        if quick {
+            args.push("--quick");
+        }
+        sparsh(&args)
+    };
+    for (extra, needle) in [
+        ("colour = 1\n", "colour"),
+        (
+            "[[variant]]\nname = \"no such key\"\nremove = [\"gel.hardness\"]\n",
+            "gel.hardness",
+        ),
+        ("[[variant]]\nname = \"Base\"\n", "variant[2].name"),
+    ] {
+        assert_user_error(&ablate(&edited(extra, None), true), needle);
+    }
     // a calibration that is not there is refused before anything runs
-    let dir = tempfile::tempdir_in(tmp.path()).unwrap();
-    let cfg = config(dir.path(), &pack, "");
-    let text = std::fs::read_to_string(&cfg).unwrap().replace(
-        "marks_calibration = \"",
-        "marks_calibration = \"/no/such/calibration",
+    let missing = edited(
+        "",
+        Some((
+            "marks_calibration = \"",
+            "marks_calibration = \"/no/such/calibration",
+        )),
     );
-    std::fs::write(&cfg, text).unwrap();
-    let out = dir.path().join("run");
-    assert_user_error(
-        &sparsh(&[
-            "ablate",
-            "--config",
-            cfg.to_str().unwrap(),
-            "--out",
-            out.to_str().unwrap(),
-            "--quick",
-        ]),
-        "real.marks_calibration",
+    assert_user_error(&ablate(&missing, true), "real.marks_calibration");
+    assert!(!missing.1.join("ablation.toml").exists());
+    let no_weights = edited(
+        "",
+        Some((
+            "weights = \"weights.safetensors\"",
+            "weights = \"missing.safetensors\"",
+        )),
     );
-    assert!(!out.join("ablation.toml").exists());
-    let dir = tempfile::tempdir_in(tmp.path()).unwrap();
-    let cfg = config(dir.path(), &pack, "");
-    let text = std::fs::read_to_string(&cfg).unwrap().replace(
-        "weights = \"weights.safetensors\"",
-        "weights = \"missing.safetensors\"",
-    );
-    std::fs::write(&cfg, text).unwrap();
-    let out = dir.path().join("run");
-    let refused = sparsh(&[
-        "ablate",
-        "--config",
-        cfg.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-    ]);
+    let refused = ablate(&no_weights, false);
     assert_user_error(&refused, "probe.weights");
     // the hint is a command that runs as given (pretrain needs its data)
     assert_user_error(&refused, "--data DATASET --out RUN");
     // nothing that a re-run would have to --resume
     assert!(
-        !out.join("ablation.toml").exists(),
+        !no_weights.1.join("ablation.toml").exists(),
         "a refused config left its record behind"
     );
 }

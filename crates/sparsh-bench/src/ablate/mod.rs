@@ -261,9 +261,7 @@ pub fn run(
         let dir = out.join("variants").join(slug(&variant.name));
         let record = dir.join("rows.json");
         if opts.resume && record.is_file() {
-            let text = std::fs::read_to_string(&record).map_err(|e| Error::file(&record, e))?;
-            let done: Vec<Row> =
-                serde_json::from_str(&text).map_err(|e| Error::file(&record, e))?;
+            let done: Vec<Row> = read_record(&record)?;
             log(&format!("{}: recorded, kept", variant.name));
             rows.extend(done);
             continue;
@@ -280,15 +278,13 @@ pub fn run(
             observer,
             log,
         )?;
-        let json = serde_json::to_vec_pretty(&variant_rows).map_err(|e| Error::file(&record, e))?;
-        crate::io::write_atomic(&record, &json)?;
+        write_record(&record, &variant_rows)?;
         rows.extend(variant_rows);
         report::write(out, &rows)?;
     }
     let record = out.join("real").join("rows.json");
     let ceiling = if opts.resume && record.is_file() {
-        let text = std::fs::read_to_string(&record).map_err(|e| Error::file(&record, e))?;
-        serde_json::from_str(&text).map_err(|e| Error::file(&record, e))?
+        read_record(&record)?
     } else {
         let (row, predictions) = real_ceiling(config, &pack, &test, &real, &eff, log)?;
         write_predictions(
@@ -308,8 +304,7 @@ pub fn run(
                 log,
             )?;
         }
-        let json = serde_json::to_vec_pretty(&row).map_err(|e| Error::file(&record, e))?;
-        crate::io::write_atomic(&record, &json)?;
+        write_record(&record, &row)?;
         row
     };
     rows.push(real_constant(&pack, &test, &real, &eff));
@@ -317,8 +312,7 @@ pub fn run(
     if let Some((calibration, setup)) = &marks {
         let record = out.join("real").join("marks.json");
         let row = if opts.resume && record.is_file() {
-            let text = std::fs::read_to_string(&record).map_err(|e| Error::file(&record, e))?;
-            serde_json::from_str(&text).map_err(|e| Error::file(&record, e))?
+            read_record(&record)?
         } else {
             let (row, fitted) = marks_refit(
                 (calibration, *setup),
@@ -333,14 +327,25 @@ pub fn run(
                 &real,
                 &[("calibrated optics fit".into(), 0, fitted)],
             )?;
-            let json = serde_json::to_vec_pretty(&row).map_err(|e| Error::file(&record, e))?;
-            crate::io::write_atomic(&record, &json)?;
+            write_record(&record, &row)?;
             row
         };
         rows.push(row);
     }
     report::write(out, &rows)?;
     Ok(rows)
+}
+
+/// A record `--resume` keeps (a variant's rows, the ceiling's, the marks' noise).
+fn read_record<T: serde::de::DeserializeOwned>(path: &Path) -> Result<T, Error> {
+    let text = std::fs::read_to_string(path).map_err(|e| Error::file(path, e))?;
+    serde_json::from_str(&text).map_err(|e| Error::file(path, e))
+}
+
+/// Writes a record [`read_record`] reads back, atomically.
+fn write_record<T: Serialize>(path: &Path, value: &T) -> Result<(), Error> {
+    let json = serde_json::to_vec_pretty(value).map_err(|e| Error::file(path, e))?;
+    crate::io::write_atomic(path, &json)
 }
 
 /// The frozen encoder of the probe rows: its recipe, input size and pretrained weights.
