@@ -305,7 +305,9 @@ enum Command {
         figure: Option<PathBuf>,
         /// Also fit each scored frame's contact circle by rendering (centre and radius whose
         /// render is closest to the frame, from its mark) and compare the pack's marks to the
-        /// fits: how far the marks are from what the images show.
+        /// fits: how far the marks are from what the images show. About 250 renders a frame
+        /// (79 s for Taxim's 24 GelSight frames on two cores with Hertz's surface; under a
+        /// rung's mechanics each render also solves the rung).
         #[arg(long)]
         refit: bool,
     },
