@@ -1,7 +1,8 @@
 //! Calibration from a ball pack and the sim-to-real score: each real frame's ball indentation is
 //! rendered (the surface under the marked contact circle, Hertz's or a rung's, see
 //! [`crate::ball`]) and compared to
-//! the real frame over the full image and over a square of half-width 2a around the contact.
+//! the real frame over the full image and over a square of half-width 2a around the contact; and
+//! the circle each frame shows, fitted by rendering ([`fit_circle`]), against the pack's mark.
 
 use image::RgbImage;
 use rayon::prelude::*;
