@@ -601,15 +601,9 @@ pub struct Summary {
 pub fn summarize(scores: &[FrameScore]) -> Summary {
     let stat = |pick: &dyn Fn(&FrameScore) -> Scores| {
         let get = |f: &dyn Fn(Scores) -> f64| -> (f64, f64) {
-            let mut v: Vec<f64> = scores.iter().map(|s| f(pick(s))).collect();
+            let v: Vec<f64> = scores.iter().map(|s| f(pick(s))).collect();
             let mean = v.iter().sum::<f64>() / v.len().max(1) as f64;
-            v.sort_by(f64::total_cmp);
-            let median = match v.len() {
-                0 => f64::NAN,
-                n if n % 2 == 1 => v[n / 2],
-                n => (v[n / 2 - 1] + v[n / 2]) / 2.0,
-            };
-            (mean, median)
+            (mean, quantile(v, 0.5))
         };
         let (p, pm) = get(&|s| s.psnr_db);
         let (s, sm) = get(&|s| s.ssim);

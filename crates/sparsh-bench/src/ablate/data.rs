@@ -20,6 +20,16 @@ pub struct Circle {
     pub r_px: f64,
 }
 
+impl From<sparsh_optics::Circle> for Circle {
+    fn from(c: sparsh_optics::Circle) -> Self {
+        Circle {
+            cx_px: c.centre_px[0],
+            cy_px: c.centre_px[1],
+            r_px: c.radius_px,
+        }
+    }
+}
+
 /// The real pack's image: size and pixel pitch; synthetic labels are mapped onto it.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct PackGeometry {
@@ -194,14 +204,13 @@ pub fn real(
         ..Default::default()
     };
     for &k in frames {
-        let [cx, cy] = pack.centers_px[k];
-        let circle = Circle {
-            cx_px: cx,
-            cy_px: cy,
-            r_px: pack.radii_px[k],
-        };
         also(&pack.frames[k], &pack.background)?;
-        out.push(&pack.frames[k], &pack.background, circle, k);
+        out.push(
+            &pack.frames[k],
+            &pack.background,
+            pack.marked_circle(k).into(),
+            k,
+        );
     }
     Ok(out)
 }

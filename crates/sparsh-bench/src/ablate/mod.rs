@@ -906,14 +906,7 @@ fn marks_refit(
                 .map_err(|e| Error::file(pack_path, format!("frame {k}: label noise: {e}")))
         })
         .collect::<Result<_, _>>()?;
-    let fitted: Vec<Circle> = refits
-        .iter()
-        .map(|r| Circle {
-            cx_px: r.fit.fitted.centre_px[0],
-            cy_px: r.fit.fitted.centre_px[1],
-            r_px: r.fit.fitted.radius_px,
-        })
-        .collect();
+    let fitted: Vec<Circle> = refits.iter().map(|r| r.fit.fitted.into()).collect();
     let errors = errors_of(&fitted, &real.circles);
     let summary = summarize_refits(&refits);
     log(&format!(
@@ -954,11 +947,7 @@ fn real_constant(
     let (w, h) = pack.size_px();
     let others: Vec<Circle> = (0..pack.frames.len())
         .filter(|k| !test.contains(k))
-        .map(|k| Circle {
-            cx_px: pack.centers_px[k][0],
-            cy_px: pack.centers_px[k][1],
-            r_px: pack.radii_px[k],
-        })
+        .map(|k| pack.marked_circle(k).into())
         .collect();
     let mean = models::CircleScale::of(&others, [w, h]).mean();
     let errors = errors_of(&vec![mean; real.len()], &real.circles);
@@ -1137,13 +1126,7 @@ fn real_probe_ceiling(
                 &turn(&pack.frames[k]),
                 &turn(&pack.background),
             )?);
-            let [cx, cy] = pack.centers_px[k];
-            let circle = Circle {
-                cx_px: cx,
-                cy_px: cy,
-                r_px: pack.radii_px[k],
-            };
-            circles.push(mirrored_circle(circle, flip, [w, h]));
+            circles.push(mirrored_circle(pack.marked_circle(k).into(), flip, [w, h]));
             groups.push(k);
         }
     }
