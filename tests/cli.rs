@@ -1016,7 +1016,8 @@ fn study_runs_named_sweeps_alone() {
     );
     // no accuracy study, and no solver table that would miss rows
     assert!(!dir.join("study.csv").exists() && !dir.join("solver_table.csv").exists());
-    // Run again over a study's file: the sweep's rows are replaced, the other sweeps' kept.
+    // Run again over a study's file, its points on two threads: the sweep's rows are replaced
+    // by the same rows in the same order, the other sweeps' kept.
     let other = "sharpness,\"cone 10°\",0,layered,0.1,\"Sneddon\",1e0,1e0,0e0,ok,\"\"";
     std::fs::write(dir.join("stability.csv"), format!("{csv}{other}\n")).unwrap();
     let out = sparsh(&[
@@ -1024,6 +1025,8 @@ fn study_runs_named_sweeps_alone() {
         "--quick",
         "--sweep",
         "poisson_ratio",
+        "--jobs",
+        "2",
         "--out",
         dir.to_str().unwrap(),
     ]);
@@ -1032,10 +1035,17 @@ fn study_runs_named_sweeps_alone() {
     let mut lines: Vec<&str> = merged.lines().collect();
     assert_eq!(lines.remove(0), csv.lines().next().unwrap());
     assert_eq!(lines.remove(0), other);
-    lines.sort();
-    let mut fresh = rows.clone();
-    fresh.sort();
-    assert_eq!(lines, fresh);
+    assert_eq!(lines, rows);
+    let no_jobs = sparsh(&[
+        "study",
+        "--sweep",
+        "poisson_ratio",
+        "--jobs",
+        "0",
+        "--out",
+        dir.to_str().unwrap(),
+    ]);
+    assert_user_error(&no_jobs, "--jobs: must be at least 1");
 
     let out = sparsh(&[
         "study",

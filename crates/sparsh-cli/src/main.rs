@@ -351,6 +351,10 @@ enum Command {
         /// and in the --table given; no charts.
         #[arg(long, value_delimiter = ',')]
         sweep: Vec<String>,
+        /// Stability points solved at once, each on one thread (the results do not depend on
+        /// it; each point's time is its own thread's, so other jobs perturb it a little).
+        #[arg(long, default_value_t = 1)]
+        jobs: usize,
     },
     /// Print where each solver rung holds at a relative force tolerance (from the study's
     /// compiled-in table): the limits a scene's `validity` policy checks every frame against.
@@ -803,7 +807,8 @@ fn run(cli: Cli) -> Result<()> {
             quick,
             table,
             sweep,
-        } => study::study(&out, quick, table.as_deref(), sweep),
+            jobs,
+        } => study::study(&out, quick, table.as_deref(), sweep, jobs),
         Command::Limits { tolerance } => study::limits(tolerance),
         Command::Devices => pretrain::devices(),
         Command::Pretrain {

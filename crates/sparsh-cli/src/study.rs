@@ -19,12 +19,21 @@ use sparsh_scene::{RungLimits, SolverKind};
 const FONT: &[u8] = include_bytes!("../../../assets/fonts/DejaVuSans.ttf");
 const SANS: &str = "sans-serif";
 
-/// Runs the study on one thread, writes `study.csv`, `stability.csv`, `solver_table.csv` and
+/// Runs the study on one thread (the stability points on `jobs` threads, one each), writes `study.csv`, `stability.csv`, `solver_table.csv` and
 /// the charts (PNG and SVG) into `out`, and the table also to `table` when given. With
 /// `sweeps`, only those stability sweeps: their rows replace theirs in `out/stability.csv` (the
 /// other sweeps' rows kept, a new file if there is none) and, given `table`, in the solver table
 /// there; the charts are a whole study's.
-pub fn study(out: &Path, quick: bool, table: Option<&Path>, sweeps: Vec<String>) -> Result<()> {
+pub fn study(
+    out: &Path,
+    quick: bool,
+    table: Option<&Path>,
+    sweeps: Vec<String>,
+    jobs: usize,
+) -> Result<()> {
+    if jobs == 0 {
+        bail!("--jobs: must be at least 1");
+    }
     if let Some(unknown) = sweeps.iter().find(|s| !SWEEPS.contains(&s.as_str())) {
         bail!(
             "--sweep: no sweep named {unknown:?} (the sweeps: {})",
@@ -52,6 +61,7 @@ pub fn study(out: &Path, quick: bool, table: Option<&Path>, sweeps: Vec<String>)
     };
     let options = StudyOptions {
         sweeps,
+        jobs,
         ..if quick {
             StudyOptions::quick()
         } else {

@@ -37,9 +37,6 @@ const DEPTH_SWEEP_GEL_MM: f64 = 2.0;
 /// Slide of the press-and-slide sweep over the press's rigid footprint radius.
 const SLIDE_OVER_FOOTPRINT: f64 = 0.5;
 
-/// Frames the press-and-slide sweep's slide is solved in (after the press's one).
-const SLIDE_FRAMES: usize = 5;
-
 /// Multiplier updates a frame of a finite-element reference may take: on the press-and-slide
 /// sweep's δ/h 0.2, μ = 1 slide the last frame needs 106 (the rung's default cap is 100).
 const REFERENCE_MAX_UPDATES: usize = 250;
@@ -64,12 +61,20 @@ pub struct StudyOptions {
     pub slide_depth_over_thickness: Vec<f64>,
     /// Friction coefficients of the press-and-slide sweep.
     pub slide_friction: Vec<f64>,
+    /// Frames the press-and-slide sweep's slide is solved in (after the press's one): at the
+    /// full study's reference mesh the μ = 1.5 slides settle only in ten (in five the last
+    /// frame's multipliers keep wandering), and the δ/h 0.3 slides' Newton solves converge only
+    /// in steps that short.
+    pub slide_frames: usize,
     /// Elements per contact radius of the finite-element reference of the depth sweep (solved
     /// on a grid of half the sweep's cell).
     pub reference_elements_per_radius: f64,
     /// Run only these stability sweeps ([`SWEEPS`]) and no accuracy study; empty: the whole
     /// study. A partial study's solver table misses rows, so it is not one to ship.
     pub sweeps: Vec<String>,
+    /// Stability points solved at once, each on a thread of its own (1: one after the other).
+    /// The results do not depend on it; the times are each point's own thread's.
+    pub jobs: usize,
 }
 
 /// The stability map's sweeps, in the order they run.
@@ -129,8 +134,10 @@ impl StudyOptions {
             depth_friction: vec![0.0, 0.5, 1.0, 1.5],
             slide_depth_over_thickness: vec![0.05, 0.1, 0.2, 0.3],
             slide_friction: vec![0.5, 1.0, 1.5],
+            slide_frames: 10,
             reference_elements_per_radius: 12.0,
             sweeps: Vec::new(),
+            jobs: 1,
         }
     }
 
@@ -145,8 +152,10 @@ impl StudyOptions {
             depth_friction: vec![0.0, 1.0],
             slide_depth_over_thickness: vec![0.1],
             slide_friction: vec![1.0],
+            slide_frames: 5,
             reference_elements_per_radius: 8.0,
             sweeps: Vec::new(),
+            jobs: 1,
         }
     }
 }
@@ -280,8 +289,9 @@ struct Setup {
     thickness_mm: f64,
     friction: f64,
     box_mm: f64,
-    /// Slide along x after the press (mm; 0: a press alone), in [`SLIDE_FRAMES`] frames.
+    /// Slide along x after the press (mm; 0: a press alone), in `slide_frames` frames.
     slide_mm: f64,
+    slide_frames: usize,
 }
 
 impl Setup {
@@ -296,13 +306,18 @@ impl Setup {
             friction: 1.0,
             box_mm: 6.4,
             slide_mm: 0.0,
+            slide_frames: 0,
         }
     }
 
     /// The poses after the press: the slide's frames (none without a slide).
     fn slide_poses(&self) -> Vec<Pose> {
         let [x, y] = self.position_xy_mm;
-        let steps = if self.slide_mm > 0.0 { SLIDE_FRAMES } else { 0 };
+        let steps = if self.slide_mm > 0.0 {
+            self.slide_frames
+        } else {
+            0
+        };
         (1..=steps)
             .map(|k| Pose {
                 position_mm: DVec3::new(
@@ -647,6 +662,7 @@ fn stability_sweeps(options: &StudyOptions) -> Vec<SweepPoint> {
             friction: mu,
             box_mm: 3.2 * footprint + 1.0 + 2.0 * slide_mm,
             slide_mm,
+            slide_frames: options.slide_frames,
             ..Setup::sphere(radius, depth)
         };
         depth_points.push(SweepPoint {
@@ -791,80 +807,11 @@ pub fn run_study(options: &StudyOptions, progress: &mut dyn FnMut(&str)) -> Stud
         }
     }
 
-    let mut stability = Vec::new();
-    let sweeps = stability_sweeps(options)
+    let sweeps: Vec<SweepPoint> = stability_sweeps(options)
         .into_iter()
-        .filter(|p| whole || options.sweeps.iter().any(|s| s == p.sweep));
-    for point in sweeps {
-        let reference = reference_name(point.case.as_ref(), point.reference_rung);
-        // Without a closed form (the box edge, a press at depth) the reference is the half-space
-        // or the finite-element rung on a grid of half the cell size.
-        let fem = FemOptions {
-            elements_per_radius: options.reference_elements_per_radius,
-            max_updates: REFERENCE_MAX_UPDATES,
-            ..FemOptions::default()
-        };
-        let fine = match point.case {
-            None => point
-                .setup
-                .scene(point.reference_rung, point.cell_mm / 2.0)
-                .and_then(|s| {
-                    let r = crate::validation::run_with(
-                        &s,
-                        s.solver,
-                        s.grid(),
-                        fem,
-                        &point.setup.slide_poses(),
-                    )
-                    .map_err(|e| e.to_string())?;
-                    Ok((r.fields.force_n[point.setup.graded_component()], r.frames))
-                }),
-            Some(_) => Ok((f64::NAN, 0)),
-        };
-        for rung in SolverKind::ALL {
-            let trial = || {
-                let s = point.setup.scene(rung, point.cell_mm)?;
-                match &point.case {
-                    Some(case) => analytic_trial(&s, case),
-                    None => {
-                        let (reference_n, _) =
-                            fine.clone().map_err(|e| format!("reference failed: {e}"))?;
-                        let (simulated_n, frames) =
-                            sweep_force_n(&s, &point.setup).map_err(|e| e.to_string())?;
-                        Ok(Sample {
-                            reference_n,
-                            simulated_n,
-                            scale_n: reference_n.abs(),
-                            frames,
-                        })
-                    }
-                }
-            };
-            let measurement = measure(options.tolerance, 1, &trial);
-            progress(&format!(
-                "stability {:<20} {:<10} {:<9} {}",
-                point.sweep,
-                point.label,
-                rung.name(),
-                if measurement.outcome == Outcome::Ok {
-                    "ok".to_string()
-                } else {
-                    measurement.reason.clone()
-                }
-            ));
-            stability.push(StabilityPoint {
-                sweep: point.sweep,
-                label: point.label.clone(),
-                friction: point.friction(),
-                depth_over_h: point.depth_over_h,
-                a_over_h: point.a_over_h,
-                rung,
-                cell_mm: point.cell_mm,
-                reference,
-                measurement,
-            });
-        }
-    }
+        .filter(|p| whole || options.sweeps.iter().any(|s| s == p.sweep))
+        .collect();
+    let stability = solve_sweep_points(&sweeps, options, progress);
 
     let table = solver_table(&points, &stability);
     Study {
@@ -873,6 +820,140 @@ pub fn run_study(options: &StudyOptions, progress: &mut dyn FnMut(&str)) -> Stud
         stability,
         table,
     }
+}
+
+/// One stability point: its reference (for a press at depth the finite elements on a finer
+/// mesh), then every rung against it, in [`SolverKind::ALL`]'s order.
+fn solve_sweep_point(
+    point: &SweepPoint,
+    options: &StudyOptions,
+    progress: &mut dyn FnMut(String),
+) -> Vec<StabilityPoint> {
+    let mut solved = Vec::new();
+    let reference = reference_name(point.case.as_ref(), point.reference_rung);
+    // Without a closed form (the box edge, a press at depth) the reference is the half-space
+    // or the finite-element rung on a grid of half the cell size.
+    let fem = FemOptions {
+        elements_per_radius: options.reference_elements_per_radius,
+        max_updates: REFERENCE_MAX_UPDATES,
+        ..FemOptions::default()
+    };
+    let fine = match point.case {
+        None => point
+            .setup
+            .scene(point.reference_rung, point.cell_mm / 2.0)
+            .and_then(|s| {
+                let r = crate::validation::run_with(
+                    &s,
+                    s.solver,
+                    s.grid(),
+                    fem,
+                    &point.setup.slide_poses(),
+                )
+                .map_err(|e| e.to_string())?;
+                Ok((r.fields.force_n[point.setup.graded_component()], r.frames))
+            }),
+        Some(_) => Ok((f64::NAN, 0)),
+    };
+    for rung in SolverKind::ALL {
+        let trial = || {
+            let s = point.setup.scene(rung, point.cell_mm)?;
+            match &point.case {
+                Some(case) => analytic_trial(&s, case),
+                None => {
+                    let (reference_n, _) =
+                        fine.clone().map_err(|e| format!("reference failed: {e}"))?;
+                    let (simulated_n, frames) =
+                        sweep_force_n(&s, &point.setup).map_err(|e| e.to_string())?;
+                    Ok(Sample {
+                        reference_n,
+                        simulated_n,
+                        scale_n: reference_n.abs(),
+                        frames,
+                    })
+                }
+            }
+        };
+        let measurement = measure(options.tolerance, 1, &trial);
+        progress(format!(
+            "stability {:<20} {:<10} {:<9} {}",
+            point.sweep,
+            point.label,
+            rung.name(),
+            if measurement.outcome == Outcome::Ok {
+                "ok".to_string()
+            } else {
+                measurement.reason.clone()
+            }
+        ));
+        solved.push(StabilityPoint {
+            sweep: point.sweep,
+            label: point.label.clone(),
+            friction: point.friction(),
+            depth_over_h: point.depth_over_h,
+            a_over_h: point.a_over_h,
+            rung,
+            cell_mm: point.cell_mm,
+            reference,
+            measurement,
+        });
+    }
+    solved
+}
+
+/// A worker's report: a progress line, or a point's results by its index.
+enum Report {
+    Line(String),
+    Solved(usize, Vec<StabilityPoint>),
+}
+
+/// The stability points' results in the points' order, solved by [`StudyOptions::jobs`]
+/// threads (each with a rayon pool of one thread, as `sparsh study` runs a single job), taking
+/// the next unsolved point as they finish; progress lines are passed on as they arrive.
+fn solve_sweep_points(
+    sweeps: &[SweepPoint],
+    options: &StudyOptions,
+    progress: &mut dyn FnMut(&str),
+) -> Vec<StabilityPoint> {
+    if options.jobs <= 1 || sweeps.len() <= 1 {
+        return sweeps
+            .iter()
+            .flat_map(|point| solve_sweep_point(point, options, &mut |line| progress(&line)))
+            .collect();
+    }
+    let next = std::sync::atomic::AtomicUsize::new(0);
+    let mut solved: Vec<Option<Vec<StabilityPoint>>> = vec![None; sweeps.len()];
+    std::thread::scope(|scope| {
+        let (sender, reports) = std::sync::mpsc::channel();
+        for _ in 0..options.jobs.min(sweeps.len()) {
+            let (sender, next) = (sender.clone(), &next);
+            scope.spawn(move || {
+                let pool = rayon::ThreadPoolBuilder::new()
+                    .num_threads(1)
+                    .build()
+                    .expect("a rayon pool of one thread");
+                loop {
+                    let i = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                    let Some(point) = sweeps.get(i) else { break };
+                    let lines = sender.clone();
+                    let result = pool.install(|| {
+                        solve_sweep_point(point, options, &mut |line| {
+                            let _ = lines.send(Report::Line(line));
+                        })
+                    });
+                    let _ = sender.send(Report::Solved(i, result));
+                }
+            });
+        }
+        drop(sender);
+        for report in reports {
+            match report {
+                Report::Line(line) => progress(&line),
+                Report::Solved(i, result) => solved[i] = Some(result),
+            }
+        }
+    });
+    solved.into_iter().flatten().flatten().collect()
 }
 
 /// The solver table from the accuracy study's `in_table` points: at each rung and resolution,
