@@ -62,9 +62,9 @@ pub struct StudyOptions {
     /// Friction coefficients of the press-and-slide sweep.
     pub slide_friction: Vec<f64>,
     /// Frames the press-and-slide sweep's slide is solved in (after the press's one): at the
-    /// full study's reference mesh the μ = 1.5 slides settle only in ten (in five the last
-    /// frame's multipliers keep wandering), and the δ/h 0.3 slides' Newton solves converge only
-    /// in steps that short.
+    /// full study's reference mesh the μ = 1.5 slide at δ/h 0.05 settles only in ten (in five
+    /// the last frame's multipliers keep wandering), and the δ/h 0.3, μ = 0.5 slide's Newton
+    /// solves converge only in steps that short.
     pub slide_frames: usize,
     /// Elements per contact radius of the finite-element reference of the depth sweep (solved
     /// on a grid of half the sweep's cell).
