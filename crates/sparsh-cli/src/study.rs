@@ -19,8 +19,9 @@ use sparsh_scene::{RungLimits, SolverKind};
 const FONT: &[u8] = include_bytes!("../../../assets/fonts/DejaVuSans.ttf");
 const SANS: &str = "sans-serif";
 
-/// Runs the study on one thread (the stability points on `jobs` threads, one each), writes `study.csv`, `stability.csv`, `solver_table.csv` and
-/// the charts (PNG and SVG) into `out`, and the table also to `table` when given. With
+/// Runs the study on one thread (the stability points on `jobs` threads, one each), writes
+/// `study.csv`, `stability.csv`, `solver_table.csv` and the charts (PNG and SVG) into `out`,
+/// and the table also to `table` when given. With
 /// `sweeps`, only those stability sweeps: their rows replace theirs in `out/stability.csv` (the
 /// other sweeps' rows kept, a new file if there is none) and, given `table`, in the solver table
 /// there; the charts are a whole study's.
