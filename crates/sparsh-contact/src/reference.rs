@@ -57,6 +57,45 @@ pub fn cone_force_n(depth_mm: f64, half_angle_rad: f64, effective_modulus_kpa: f
     2.0 / PI * effective_modulus_kpa * depth_mm * depth_mm * half_angle_rad.tan() * 1e-3
 }
 
+/// Rigid *sphere* (not Hertz's paraboloid) of radius R pressed δ into a half-space, exact in
+/// linear elasticity (Sneddon, Int. J. Eng. Sci. 3, 1965): the contact radius a solves
+/// δ = (a/2) ln((R + a)/(R − a)) (mm). `None` unless 0 < δ and R > 0.
+pub fn sneddon_sphere_contact_radius_mm(radius_mm: f64, depth_mm: f64) -> Option<f64> {
+    if !(radius_mm > 0.0 && depth_mm > 0.0 && depth_mm.is_finite()) {
+        return None;
+    }
+    let depth_at = |a: f64| 0.5 * a * ((radius_mm + a) / (radius_mm - a)).ln();
+    // δ(a) rises monotonically from 0 at a = 0 to ∞ as a → R: bisect to the last bit.
+    let (mut lo, mut hi) = (0.0, radius_mm);
+    for _ in 0..200 {
+        let mid = 0.5 * (lo + hi);
+        if mid <= lo || mid >= hi {
+            break;
+        }
+        if depth_at(mid) < depth_mm {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    Some(0.5 * (lo + hi))
+}
+
+/// Rigid sphere on a half-space, exact in linear elasticity (Sneddon 1965):
+/// P = (E*/2) [(a² + R²) ln((R + a)/(R − a)) − 2aR] (N) with a from
+/// [`sneddon_sphere_contact_radius_mm`]; Hertz's (4/3) E* R^(1/2) δ^(3/2) is its limit δ ≪ R.
+/// `None` where the contact radius is.
+pub fn sneddon_sphere_force_n(
+    radius_mm: f64,
+    depth_mm: f64,
+    effective_modulus_kpa: f64,
+) -> Option<f64> {
+    let a = sneddon_sphere_contact_radius_mm(radius_mm, depth_mm)?;
+    let r = radius_mm;
+    let log = ((r + a) / (r - a)).ln();
+    Some(0.5 * effective_modulus_kpa * ((a * a + r * r) * log - 2.0 * a * r) * 1e-3)
+}
+
 /// Cattaneo–Mindlin: a sphere under constant normal load P, then a monotonic tangential load Q <
 /// μP (Johnson §7.2, Goodman's approximation: no normal–tangential coupling).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -117,8 +156,11 @@ pub fn bonded_layer_force_factor(chi: f64) -> Option<f64> {
 /// neo-Hookean half-space, in the closed form attributed to Lin et al. (Biomech. Model.
 /// Mechanobiol. 8, 2009) as implemented in AtomicJ and ISR3D: F = (80/9) a² P(λ) with a = √(Rδ),
 /// λ = 1 − 0.2 a/R and P the uniaxial nominal stress 2C₁₀(λ⁻² − λ); that is
-/// (75 − 15x + x²)/(3(5 − x)²) with x = √(δ/R). Its accuracy against finite elements is not
-/// stated in the sources read, so it is a reported comparison, not a pass mark.
+/// (75 − 15x + x²)/(3(5 − x)²) with x = √(δ/R). It is Hertz's mean pressure written as a
+/// constraint factor 80/(9π) times E ε at Tabor's representative strain ε = 0.2 a/R, with E ε
+/// replaced by the neo-Hookean stress in uniaxial compression at λ = 1 − ε: a one-point
+/// surrogate, not a solution of the contact problem, stiffer than Hertz at every depth because
+/// that stress is convex in ε. A reported comparison, not a pass mark.
 pub fn lin_neo_hookean_factor(depth_over_radius: f64) -> f64 {
     let x = depth_over_radius.sqrt();
     (75.0 - 15.0 * x + x * x) / (3.0 * (5.0 - x) * (5.0 - x))
@@ -142,6 +184,75 @@ mod tests {
         let stiffness = (h.force_n(delta + e) - h.force_n(delta - e)) / (2.0 * e);
         let expected = 2.0 * h.contact_radius_mm(f) * 400.0 * 1e-3;
         assert!((stiffness - expected).abs() < 1e-6 * expected);
+    }
+
+    /// Sneddon's sphere against two answers it does not compute with: Hertz in the limit δ ≪ R,
+    /// and the force integrated from the stiffness dP/dδ = 2aE*, which holds for any
+    /// axisymmetric rigid indenter in linear elasticity (Johnson §5.6; Pharr, Oliver & Brotzen
+    /// 1992), with the contact radius alone from Sneddon.
+    #[test]
+    fn sneddon_sphere_meets_hertz_and_its_own_stiffness() {
+        let (r, e_star) = (5.0, 400.0);
+        let hertz = Hertz {
+            radius_mm: r,
+            effective_modulus_kpa: e_star,
+        };
+        let shallow = 1e-4;
+        let p = sneddon_sphere_force_n(r, shallow, e_star).unwrap();
+        assert!((p / hertz.force_n(shallow) - 1.0).abs() < 1e-4);
+        for depth in [0.25_f64, 1.0, 2.5] {
+            // Simpson's rule on P(δ) = ∫₀^δ 2 a(s) E* ds (a ~ √s near 0: substitute s = t²).
+            let n = 2000;
+            let h = depth.sqrt() / n as f64;
+            let f = |t: f64| {
+                let a = if t == 0.0 {
+                    0.0
+                } else {
+                    sneddon_sphere_contact_radius_mm(r, t * t).unwrap()
+                };
+                2.0 * a * e_star * 2.0 * t
+            };
+            let mut sum = f(0.0) + f(depth.sqrt());
+            for i in 1..n {
+                sum += f(i as f64 * h) * if i % 2 == 1 { 4.0 } else { 2.0 };
+            }
+            let integrated = sum * h / 3.0 * 1e-3;
+            let closed = sneddon_sphere_force_n(r, depth, e_star).unwrap();
+            assert!(
+                (integrated / closed - 1.0).abs() < 1e-6,
+                "δ = {depth}: ∫2aE* dδ = {integrated}, closed form {closed}"
+            );
+            // the exact sphere is softer than the paraboloid at the same depth
+            assert!(closed < hertz.force_n(depth));
+        }
+        assert_eq!(sneddon_sphere_force_n(r, 0.0, e_star), None);
+        assert_eq!(sneddon_sphere_force_n(r, f64::NAN, e_star), None);
+        assert_eq!(sneddon_sphere_contact_radius_mm(-1.0, 0.1), None);
+    }
+
+    /// The Lin et al. factor against its construction computed step by step: Hertz's mean
+    /// pressure at a = √(Rδ) with E ε (ε = 0.2 a/R) replaced by the incompressible neo-Hookean
+    /// uniaxial nominal stress 2C₁₀(λ⁻² − λ), λ = 1 − ε, E = 6C₁₀.
+    #[test]
+    fn lin_factor_is_tabor_strain_in_uniaxial_compression() {
+        let (r, c10) = (5.0, 50.0);
+        let e = 6.0 * c10;
+        let hertz = Hertz {
+            radius_mm: r,
+            effective_modulus_kpa: e / (1.0 - 0.25),
+        };
+        for depth in [0.01, 0.25, 1.0, 2.0] {
+            let a = (r * depth).sqrt();
+            let strain = 0.2 * a / r;
+            let mean_pressure = hertz.force_n(depth) * 1e3 / (PI * a * a);
+            let constraint = mean_pressure / (e * strain);
+            let stretch = 1.0 - strain;
+            let stress = 2.0 * c10 * (stretch.powi(-2) - stretch);
+            let surrogate = constraint * stress * PI * a * a * 1e-3;
+            let factor = lin_neo_hookean_factor(depth / r);
+            assert!((surrogate / hertz.force_n(depth) - factor).abs() < 1e-12);
+            assert!(factor > 1.0, "stiffer than Hertz at every depth");
+        }
     }
 
     #[test]

@@ -67,7 +67,8 @@ pub enum Check {
     /// The scene's rung at ν = 0.49 and at ν = 0.4999: force over E* = E/(1 − ν²), which the
     /// elastic solution keeps (to the bottom effect) and a locking element inflates.
     Locking,
-    /// Sphere on a thick block at finite depth: force against Hertz (with the bottom effect) and
+    /// Sphere on a thick block at finite depth: force against Hertz (with the bottom effect),
+    /// against Sneddon's exact sphere in linear elasticity (the indenter's shape alone) and
     /// against the neo-Hookean closed form attributed to Lin et al. (2009); reported only.
     FiniteStrainSphere,
 }
@@ -711,10 +712,24 @@ pub fn evaluate_case_with(
             let bottom = reference::garcia_bottom_effect(hertz_a / gel.thickness_mm);
             let x = (r.approach_mm / radius_mm).sqrt();
             let lin = reference::lin_neo_hookean_factor(x * x);
+            let sneddon = reference::sneddon_sphere_force_n(
+                radius_mm,
+                r.approach_mm,
+                hertz.effective_modulus_kpa,
+            )
+            .ok_or_else(|| ContactError::OutOfValidity {
+                solver: "Sneddon sphere reference",
+                reason: format!("no contact (approach {} mm)", r.approach_mm),
+            })?;
             vec![
                 v(
                     "force_vs_hertz (N)",
                     hertz.force_n(r.approach_mm) * bottom,
+                    r.fields.force_n[2],
+                ),
+                v(
+                    "force_vs_sneddon_sphere (N)",
+                    sneddon * bottom,
                     r.fields.force_n[2],
                 ),
                 v(
