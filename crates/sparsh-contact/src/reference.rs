@@ -59,7 +59,7 @@ pub fn cone_force_n(depth_mm: f64, half_angle_rad: f64, effective_modulus_kpa: f
 
 /// Rigid *sphere* (not Hertz's paraboloid) of radius R pressed δ into a half-space, exact in
 /// linear elasticity (Sneddon, Int. J. Eng. Sci. 3, 1965): the contact radius a solves
-/// δ = (a/2) ln((R + a)/(R − a)) (mm). `None` unless 0 < δ and R > 0.
+/// δ = (a/2) ln((R + a)/(R − a)) (mm). `None` unless δ is finite and positive and R > 0.
 pub fn sneddon_sphere_contact_radius_mm(radius_mm: f64, depth_mm: f64) -> Option<f64> {
     if !(radius_mm > 0.0 && depth_mm > 0.0 && depth_mm.is_finite()) {
         return None;
@@ -188,8 +188,8 @@ mod tests {
 
     /// Sneddon's sphere against two answers it does not compute with: Hertz in the limit δ ≪ R,
     /// and the force integrated from the stiffness dP/dδ = 2aE*, which holds for any
-    /// axisymmetric rigid indenter in linear elasticity (Johnson §5.6; Pharr, Oliver & Brotzen
-    /// 1992), with the contact radius alone from Sneddon.
+    /// axisymmetric rigid indenter in linear elasticity (Pharr, Oliver & Brotzen, J. Mater. Res.
+    /// 7, 1992), with the contact radius alone from Sneddon.
     #[test]
     fn sneddon_sphere_meets_hertz_and_its_own_stiffness() {
         let (r, e_star) = (5.0, 400.0);
