@@ -59,9 +59,9 @@ pub fn cone_force_n(depth_mm: f64, half_angle_rad: f64, effective_modulus_kpa: f
 
 /// Rigid *sphere* (not Hertz's paraboloid) of radius R pressed δ into a half-space, exact in
 /// linear elasticity (Sneddon, Int. J. Eng. Sci. 3, 1965): the contact radius a solves
-/// δ = (a/2) ln((R + a)/(R − a)) (mm). `None` unless δ is finite and positive and R > 0.
+/// δ = (a/2) ln((R + a)/(R − a)) (mm). `None` unless δ and R are finite and positive.
 pub fn sneddon_sphere_contact_radius_mm(radius_mm: f64, depth_mm: f64) -> Option<f64> {
-    if !(radius_mm > 0.0 && depth_mm > 0.0 && depth_mm.is_finite()) {
+    if !(radius_mm > 0.0 && radius_mm.is_finite() && depth_mm > 0.0 && depth_mm.is_finite()) {
         return None;
     }
     let depth_at = |a: f64| 0.5 * a * ((radius_mm + a) / (radius_mm - a)).ln();
@@ -228,6 +228,7 @@ mod tests {
         assert_eq!(sneddon_sphere_force_n(r, 0.0, e_star), None);
         assert_eq!(sneddon_sphere_force_n(r, f64::NAN, e_star), None);
         assert_eq!(sneddon_sphere_contact_radius_mm(-1.0, 0.1), None);
+        assert_eq!(sneddon_sphere_contact_radius_mm(f64::INFINITY, 0.1), None);
     }
 
     /// The Lin et al. factor against its construction computed step by step: Hertz's mean
