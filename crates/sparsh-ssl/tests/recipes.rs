@@ -99,3 +99,23 @@ fn paper_base_recipes_take_a_step() {
         assert!(loss.is_finite(), "{name}: loss {loss}");
     }
 }
+
+/// The 160×120 I-JEPA recipe is the 96×72 one with only its input changed: the same encoder,
+/// masks, predictor, schedule and optimizer, so the two compare resolution alone.
+#[test]
+fn the_160_recipe_differs_from_the_cpu_recipe_in_its_input_only() {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../assets/ssl");
+    let read = |name: &str| -> toml::Table {
+        let mut t: toml::Table = std::fs::read_to_string(dir.join(name))
+            .unwrap()
+            .parse()
+            .unwrap();
+        let enc = t.get_mut("encoder").unwrap().as_table_mut().unwrap();
+        enc.remove("img_size").expect("img_size given");
+        t
+    };
+    assert_eq!(read("ijepa_tiny_160_cpu.toml"), read("ijepa_tiny_cpu.toml"));
+    let r = Recipe::load(&dir.join("ijepa_tiny_160_cpu.toml")).unwrap();
+    let enc = r.encoder_config().unwrap();
+    assert_eq!((enc.img_size, enc.grid()), ([160, 120], [1, 20, 15]));
+}
