@@ -23,8 +23,7 @@ fn shipped_tacbench_configs_load_and_name_real_recipes_and_scenes() {
         if file
             .file_name()
             .unwrap()
-            .to_str()
-            .unwrap()
+            .to_string_lossy()
             .starts_with("fields_")
         {
             let cfg = FieldProbeConfig::load(file).unwrap_or_else(|e| panic!("{e}"));
@@ -32,16 +31,15 @@ fn shipped_tacbench_configs_load_and_name_real_recipes_and_scenes() {
             continue;
         }
         let cfg = BenchConfig::load(file).unwrap_or_else(|e| panic!("{e}"));
-        let mut recipes: Vec<(&Path, String)> = Vec::new();
-        for (i, e) in cfg.encoder.iter().enumerate() {
-            recipes.push((&e.recipe, format!("encoder[{i}].recipe")));
-        }
-        for (i, r) in cfg.random.iter().enumerate() {
-            recipes.push((&r.recipe, format!("random[{i}].recipe")));
-        }
-        if let Some(b) = &cfg.baselines {
-            recipes.push((&b.recipe, "baselines.recipe".into()));
-        }
+        let encoders = cfg.encoder.iter().enumerate();
+        let draws = cfg.random.iter().enumerate();
+        let recipes = (encoders.map(|(i, e)| (&e.recipe, format!("encoder[{i}].recipe"))))
+            .chain(draws.map(|(i, r)| (&r.recipe, format!("random[{i}].recipe"))))
+            .chain(
+                cfg.baselines
+                    .iter()
+                    .map(|b| (&b.recipe, "baselines.recipe".into())),
+            );
         for (path, field) in recipes {
             cfg.recipe(path, &field)
                 .unwrap_or_else(|e| panic!("{}: {e}", file.display()));
