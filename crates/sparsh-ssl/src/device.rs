@@ -241,6 +241,19 @@ pub fn seeded<T>(device: &Device, seed: u64, f: impl FnOnce() -> T) -> T {
     f()
 }
 
+/// A tensor drawn from `distribution` under `seed` ([`seeded`]). Tests draw their inputs this
+/// way: a draw outside the lock takes numbers from burn's global generator while a seeded
+/// initialization on another thread is drawing, and that initialization changes.
+#[cfg(test)]
+pub(crate) fn seeded_random<const D: usize>(
+    device: &Device,
+    seed: u64,
+    shape: [usize; D],
+    distribution: burn::tensor::Distribution,
+) -> Tensor<D> {
+    seeded(device, seed, || Tensor::random(shape, distribution, device))
+}
+
 /// Draws every parameter of `module` that is still uninitialized: burn initializes parameters
 /// lazily, on first use, so without this the draws happen wherever the module is first used
 /// (another thread, after another seeding) instead of under [`seeded`].

@@ -610,6 +610,7 @@ mod tests {
             .with_teacher_norm(TeacherNorm::Batch)
             .with_ibot_weight(if ibot { 1.0 } else { 0.0 })
             .init(&device);
+            crate::device::draw_parameters(&dino);
             let x = Tensor::<5>::random(
                 [4, 1, 6, 16, 16],
                 burn::tensor::Distribution::Default,

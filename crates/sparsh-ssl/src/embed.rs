@@ -244,15 +244,18 @@ mod tests {
     #[test]
     fn split_batches_and_pooling_match_single_samples() {
         let device = Device::flex();
-        let vit = VitConfig::new([16, 12], 4)
-            .with_embed_dim(32)
-            .with_depth(2)
-            .with_num_heads(4)
-            .init(&device);
-        let x = Tensor::<5>::random(
+        let vit = crate::device::seeded_module(&device, 1, || {
+            VitConfig::new([16, 12], 4)
+                .with_embed_dim(32)
+                .with_depth(2)
+                .with_num_heads(4)
+                .init(&device)
+        });
+        let x = crate::device::seeded_random(
+            &device,
+            2,
             [3, 1, 6, 16, 12],
             burn::tensor::Distribution::Default,
-            &device,
         );
         let pool = |n| {
             rayon::ThreadPoolBuilder::new()

@@ -518,27 +518,29 @@ mod tests {
         use burn::module::Param;
         use burn::tensor::Distribution;
         let device = Device::flex();
-        let mut vit = cfg.init(&device);
-        let draw =
-            |dims: usize| Tensor::<1>::random([dims], Distribution::Uniform(0.5, 1.5), &device);
-        let d = cfg.embed_dim;
-        for b in &mut vit.blocks {
-            if b.ls1.is_some() {
-                b.ls1 = Some(Param::from_tensor(draw(d)));
-                b.ls2 = Some(Param::from_tensor(draw(d)));
+        crate::device::seeded_module(&device, 4, || {
+            let mut vit = cfg.init(&device);
+            let draw =
+                |dims: usize| Tensor::<1>::random([dims], Distribution::Uniform(0.5, 1.5), &device);
+            let d = cfg.embed_dim;
+            for b in &mut vit.blocks {
+                if b.ls1.is_some() {
+                    b.ls1 = Some(Param::from_tensor(draw(d)));
+                    b.ls2 = Some(Param::from_tensor(draw(d)));
+                }
+                b.norm2.beta = Some(Param::from_tensor(draw(d) - 1.0));
             }
-            b.norm2.beta = Some(Param::from_tensor(draw(d) - 1.0));
-        }
-        vit.norm.gamma = Param::from_tensor(draw(d));
-        if let Some(r) = &vit.register_tokens {
-            let dims = r.dims();
-            vit.register_tokens = Some(Param::from_tensor(Tensor::random(
-                dims,
-                Distribution::Normal(0.0, 1.0),
-                &device,
-            )));
-        }
-        vit
+            vit.norm.gamma = Param::from_tensor(draw(d));
+            if let Some(r) = &vit.register_tokens {
+                let dims = r.dims();
+                vit.register_tokens = Some(Param::from_tensor(Tensor::random(
+                    dims,
+                    Distribution::Normal(0.0, 1.0),
+                    &device,
+                )));
+            }
+            vit
+        })
     }
 
     /// The host pass against burn's graph ([`Vit::forward`] through [`encode`]) for an image
@@ -579,10 +581,11 @@ mod tests {
             ];
             let len: usize = shape.iter().product();
             for batch in [1, 3] {
-                let x = Tensor::<5>::random(
+                let x = crate::device::seeded_random(
+                    &Device::flex(),
+                    batch as u64,
                     [batch, shape[0], shape[1], shape[2], shape[3]],
                     burn::tensor::Distribution::Normal(0.0, 1.0),
-                    &Device::flex(),
                 );
                 let inputs = host(x.clone().reshape([batch * len]));
                 for p in [Pool::None, Pool::Mean] {

@@ -593,10 +593,11 @@ mod tests {
     #[test]
     fn flex_tensors_match_burns_gelu_and_its_gradient() {
         let device = Device::flex();
-        let x = Tensor::<2>::random(
+        let x = crate::device::seeded_random(
+            &device,
+            1,
             [64, 96],
             burn::tensor::Distribution::Normal(0.0, 3.0),
-            &device,
         );
         let close = |a: Tensor<2>, b: Tensor<2>, tol: f32| {
             let a: Vec<f32> = a.into_data().try_to_vec().unwrap();
@@ -633,7 +634,8 @@ mod tests {
             );
         }
         let ad = device.clone().autodiff();
-        let upstream = Tensor::<2>::random([96, 64], burn::tensor::Distribution::Default, &ad);
+        let upstream =
+            crate::device::seeded_random(&ad, 2, [96, 64], burn::tensor::Distribution::Default);
         let grad_of = |f: fn(Tensor<2>) -> Tensor<2>| {
             let leaf = Tensor::<2>::from_data(x.to_data(), &ad).require_grad();
             let y = f(leaf.clone().transpose());
@@ -656,7 +658,13 @@ mod tests {
         let d = 48;
         let mut norm = LayerNormConfig::new(d).with_epsilon(1e-6).init(&ad);
         let random = |shape: [usize; 2], sd: f64| {
-            Tensor::<2>::random(shape, burn::tensor::Distribution::Normal(0.5, sd), &ad)
+            let seed = (shape[0] * 1000 + shape[1]) as u64;
+            crate::device::seeded_random(
+                &ad,
+                seed,
+                shape,
+                burn::tensor::Distribution::Normal(0.5, sd),
+            )
         };
         norm.gamma = Param::from_tensor(random([1, d], 1.0).reshape([d]));
         norm.beta = Some(Param::from_tensor(random([1, d], 1.0).reshape([d])));

@@ -622,7 +622,8 @@ mod tests {
         let with = BASE.replace("patch_size = 8\n", "patch_size = 8\nlayer_scale = 1e-5\n");
         let cfg = Recipe::parse(&with).unwrap().encoder_config().unwrap();
         assert_eq!(cfg.layer_scale, Some(1e-5));
-        let vit = cfg.init(&burn::prelude::Device::flex());
+        let device = burn::prelude::Device::flex();
+        let vit = crate::device::seeded_module(&device, 1, || cfg.init(&device));
         let gamma: Vec<f32> = vit.blocks[0]
             .ls2
             .as_ref()

@@ -549,11 +549,12 @@ mod tests {
             .with_num_heads(4)
             .with_num_registers(2);
         cfg.validate().unwrap();
-        let vit = cfg.init(&device);
-        let x = Tensor::<5>::random(
+        let vit = crate::device::seeded_module(&device, 1, || cfg.init(&device));
+        let x = crate::device::seeded_random(
+            &device,
+            3,
             [2, 1, 6, 16, 12],
             burn::tensor::Distribution::Default,
-            &device,
         );
         let out = vit.forward(x.clone(), None);
         assert_eq!(out.patches.dims(), [2, 12, 32]);
@@ -571,11 +572,12 @@ mod tests {
             .with_depth(3)
             .with_num_heads(4)
             .with_num_registers(1);
-        let vit = cfg.init(&device);
-        let x = Tensor::<5>::random(
+        let vit = crate::device::seeded_module(&device, 2, || cfg.init(&device));
+        let x = crate::device::seeded_random(
+            &device,
+            3,
             [2, 1, 6, 16, 12],
             burn::tensor::Distribution::Default,
-            &device,
         );
         let hooks = vit.forward_hooks(x.clone(), &[0, 2, 2]);
         assert_eq!(hooks.len(), 3);
