@@ -33,6 +33,9 @@ pub struct Row {
     pub value: f64,
     /// Probe seeds averaged.
     pub seeds: usize,
+    /// Standard deviation (n − 1) of the metric over those probe seeds, where there are several;
+    /// for a summary row, the mean over the draws of each draw's.
+    pub seeds_sd: Option<f64>,
     /// 95 % bootstrap interval over test sequences (empty for summary rows).
     pub ci_low: Option<f64>,
     /// Upper end of the interval.
@@ -179,11 +182,7 @@ pub fn rows(
                     .iter()
                     .map(move |&m| {
                         let metric = format!("{prefix}{}", m.name());
-                        let value = us
-                            .iter()
-                            .map(|u| u.metrics.get(&metric).copied().unwrap_or(f64::NAN))
-                            .sum::<f64>()
-                            / us.len() as f64;
+                        let (value, seeds_sd) = over_seeds(us, &metric);
                         let stat = |k: &[usize]| {
                             let rows: Vec<usize> = k.iter().map(|&j| split[j]).collect();
                             preds
@@ -201,6 +200,7 @@ pub fn rows(
                             metric,
                             value,
                             seeds: us.len(),
+                            seeds_sd,
                             ci_low: Some(lo),
                             ci_high: Some(hi),
                             draws_sd: None,
@@ -234,6 +234,7 @@ pub fn rows(
                         metric: format!("{prefix}{}", m.name()),
                         value: score(m, split, &preds, samples),
                         seeds: 1,
+                        seeds_sd: None,
                         ci_low: Some(lo),
                         ci_high: Some(hi),
                         draws_sd: None,
@@ -301,6 +302,7 @@ pub fn rows(
                         metric: metric.clone(),
                         value: s.mean,
                         seeds: draws_rows[0].seeds,
+                        seeds_sd: mean_seed_sd(&draws_rows),
                         ci_low: None,
                         ci_high: None,
                         draws_sd: Some(s.sd),
@@ -347,6 +349,24 @@ pub fn rows(
             .then(b.budget.total_cmp(&a.budget))
     });
     rows
+}
+
+/// A cell's metric over its probe seeds' units: the mean, and the standard deviation (n − 1)
+/// where there are several seeds.
+fn over_seeds(units: &[&Unit], metric: &str) -> (f64, Option<f64>) {
+    let values: Vec<f64> = units
+        .iter()
+        .map(|u| u.metrics.get(metric).copied().unwrap_or(f64::NAN))
+        .collect();
+    let s = Spread::of(&values);
+    (s.mean, (values.len() > 1).then_some(s.sd))
+}
+
+/// The mean over random draws of each draw's spread over probe seeds (none with one seed).
+fn mean_seed_sd(draws: &[&Row]) -> Option<f64> {
+    let sds: Vec<f64> = draws.iter().filter_map(|r| r.seeds_sd).collect();
+    (!sds.is_empty() && sds.len() == draws.len())
+        .then(|| sds.iter().sum::<f64>() / sds.len() as f64)
 }
 
 /// Writes `results.csv` (RFC 4180, header row first), `results.md` and the charts into `out`.
@@ -430,11 +450,12 @@ pub fn markdown(rows: &[Row], budgets: &[f64]) -> String {
                     s += &match cell {
                         None => " – |".to_string(),
                         Some(r) if kind == "random_draws" => format!(
-                            " {} ± {} [{}–{}] |",
+                            " {} ± {} [{}–{}]{} |",
                             fmt(r.value),
                             fmt(r.draws_sd.unwrap_or(0.0)),
                             fmt(r.draws_min.unwrap_or(f64::NAN)),
-                            fmt(r.draws_max.unwrap_or(f64::NAN))
+                            fmt(r.draws_max.unwrap_or(f64::NAN)),
+                            seed_note(r)
                         ),
                         Some(r) => {
                             let rank = match (r.rank, r.rank_of) {
@@ -442,10 +463,11 @@ pub fn markdown(rows: &[Row], budgets: &[f64]) -> String {
                                 _ => String::new(),
                             };
                             format!(
-                                " {} [{}, {}]{rank} |",
+                                " {} [{}, {}]{rank}{} |",
                                 fmt(r.value),
                                 fmt(r.ci_low.unwrap_or(f64::NAN)),
-                                fmt(r.ci_high.unwrap_or(f64::NAN))
+                                fmt(r.ci_high.unwrap_or(f64::NAN)),
+                                seed_note(r)
                             )
                         }
                     };
@@ -455,6 +477,15 @@ pub fn markdown(rows: &[Row], budgets: &[f64]) -> String {
         }
     }
     s
+}
+
+/// `; N seeds, sd S` where a cell averages several probe seeds (for a summary row, each draw's
+/// seeds and the draws' mean spread over them).
+fn seed_note(r: &Row) -> String {
+    match r.seeds_sd {
+        Some(sd) if r.seeds > 1 => format!("; {} seeds, sd {}", r.seeds, fmt(sd)),
+        _ => String::new(),
+    }
 }
 
 /// Three significant digits, at most one decimal above 100.
@@ -628,4 +659,85 @@ fn draw_chart<DB: DrawingBackend>(
         .draw()
         .map_err(chart_err)?;
     area.present().map_err(chart_err)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn unit(seed: u64, rmse: f64) -> Unit {
+        Unit {
+            task: TaskKind::Force,
+            encoder: "random-vit-0".into(),
+            kind: EncoderKind::Random,
+            group: Some("random-vit".into()),
+            budget: 1.0,
+            seed,
+            train_sequences: 4,
+            train_samples: 40,
+            best_epoch: 3,
+            val_curve: vec![1.0; 5],
+            test_preds: Vec::new(),
+            seen_preds: Vec::new(),
+            metrics: BTreeMap::from([("rmse_mn".to_string(), rmse)]),
+            test_key: 0,
+        }
+    }
+
+    fn row(seeds: usize, value: f64, seeds_sd: Option<f64>) -> Row {
+        Row {
+            task: "force".into(),
+            encoder: "random-vit-0".into(),
+            kind: "random".into(),
+            budget: 1.0,
+            metric: "rmse_mn".into(),
+            value,
+            seeds,
+            seeds_sd,
+            ci_low: Some(value - 1.0),
+            ci_high: Some(value + 1.0),
+            draws_sd: None,
+            draws_min: None,
+            draws_max: None,
+            rank: None,
+            rank_of: None,
+            train_sequences: 4,
+            train_samples: 40,
+            test_samples: 10,
+        }
+    }
+
+    #[test]
+    fn a_cell_over_probe_seeds_is_their_mean_and_sample_spread() {
+        // 150, 170, 190 mN: mean 170, deviations ±20 and 0, sd √(800 / 2) = 20
+        let us = [unit(0, 150.0), unit(1, 170.0), unit(2, 190.0)];
+        let refs: Vec<&Unit> = us.iter().collect();
+        let (mean, sd) = over_seeds(&refs, "rmse_mn");
+        assert!((mean - 170.0).abs() < 1e-12);
+        assert!((sd.unwrap() - 20.0).abs() < 1e-12);
+        // one seed: no spread to report
+        assert_eq!(over_seeds(&refs[..1], "rmse_mn"), (150.0, None));
+        // a metric a unit lacks is NaN, not a silent mean of the others
+        assert!(over_seeds(&refs, "seen_rmse_mn").0.is_nan());
+    }
+
+    #[test]
+    fn draws_carry_their_mean_seed_spread_and_the_table_names_it() {
+        let draws = [row(3, 170.0, Some(20.0)), row(3, 180.0, Some(10.0))];
+        let refs: Vec<&Row> = draws.iter().collect();
+        assert_eq!(mean_seed_sd(&refs), Some(15.0));
+        // a draw without a spread (one seed) leaves the summary without one
+        let mixed = [row(3, 170.0, Some(20.0)), row(1, 180.0, None)];
+        assert_eq!(mean_seed_sd(&mixed.iter().collect::<Vec<_>>()), None);
+        assert_eq!(seed_note(&draws[0]), "; 3 seeds, sd 20.00");
+        assert_eq!(seed_note(&row(1, 170.0, None)), "");
+        let mut shown = row(3, 170.0, Some(20.0));
+        shown.kind = "pixels".into();
+        shown.encoder = "pixels".into();
+        let md = markdown(&[shown], &[1.0]);
+        assert!(
+            md.contains("| pixels | 170.0 [169.0, 171.0]; 3 seeds, sd 20.00 |"),
+            "{md}"
+        );
+    }
 }
