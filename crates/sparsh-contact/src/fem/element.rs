@@ -200,18 +200,44 @@ fn deformation(b: &Box8, u: &[[f64; 3]; 8]) -> [Mat3; 8] {
 pub fn energy(m: &NeoHookean, b: &Box8, u: &[[f64; 3]; 8]) -> Result<f64, Inverted> {
     let w = b.volume_mm3 / 8.0;
     let mut iso = 0.0;
-    let mut volume = 0.0;
+    let mut dilatation = 0.0;
     for f in deformation(b, u) {
         let j = det(&f);
         if j <= 0.0 || !j.is_finite() {
             return Err(Inverted);
         }
-        let i1: f64 = f.iter().flatten().map(|x| x * x).sum();
-        iso += w * 0.5 * m.shear_kpa * (j.powf(-2.0 / 3.0) * i1 - 3.0);
-        volume += w * j;
+        let (jm1, iso_invariant) = invariants_from_rest(&f);
+        iso += w * 0.5 * m.shear_kpa * iso_invariant;
+        dilatation += w * jm1;
     }
-    let theta = volume / b.volume_mm3;
-    Ok(iso + b.volume_mm3 * 0.5 * m.bulk_kpa * (theta - 1.0).powi(2))
+    let theta_m1 = dilatation / b.volume_mm3;
+    Ok(iso + b.volume_mm3 * 0.5 * m.bulk_kpa * theta_m1 * theta_m1)
+}
+
+/// J − 1 and the isochoric invariant Ī₁ − 3 = J^(−2/3) I₁ − 3 of F = I + H, from H = F − I
+/// (exact in floating point). Both are small near rest; formed from I₁ ≈ 3 and J ≈ 1 they
+/// keep only the absolute round-off of 3, about 1e-16 μ a Gauss point, which near the solution
+/// swamps the energy decrease a line search looks for. Expanded instead:
+/// J − 1 = tr H + ½((tr H)² − tr H²) + det H (exact for 3 × 3), I₁ − 3 = 2 tr H + |H|², and
+/// Ī₁ − 3 = d + 3a + a d with d = I₁ − 3 and a = J^(−2/3) − 1 = expm1(−⅔ ln(1 + (J − 1))).
+fn invariants_from_rest(f: &Mat3) -> (f64, f64) {
+    let mut h = *f;
+    for (i, row) in h.iter_mut().enumerate() {
+        row[i] -= 1.0;
+    }
+    let trace = h[0][0] + h[1][1] + h[2][2];
+    let mut trace_h2 = 0.0;
+    let mut norm2 = 0.0;
+    for (i, row) in h.iter().enumerate() {
+        for (k, &x) in row.iter().enumerate() {
+            trace_h2 += x * h[k][i];
+            norm2 += x * x;
+        }
+    }
+    let jm1 = trace + 0.5 * (trace * trace - trace_h2) + det(&h);
+    let d = 2.0 * trace + norm2;
+    let a = (-2.0 / 3.0 * jm1.ln_1p()).exp_m1();
+    (jm1, d + 3.0 * a + a * d)
 }
 
 /// Energy, gradient and (when `with_hessian`) Hessian of one element into `out`, or
@@ -265,7 +291,8 @@ fn evaluate_portable(
     let fs = deformation(b, u);
     let mut js = [0.0; 8];
     let mut gs = [[[0.0; 3]; 3]; 8];
-    let mut volume = 0.0;
+    let mut dilatation = 0.0;
+    let mut iso_invariants = [0.0; 8];
     for g in 0..8 {
         let j = det(&fs[g]);
         if j <= 0.0 || !j.is_finite() {
@@ -273,11 +300,13 @@ fn evaluate_portable(
         }
         js[g] = j;
         gs[g] = inverse_transpose(&fs[g], j);
-        volume += w * j;
+        let (jm1, iso_invariant) = invariants_from_rest(&fs[g]);
+        iso_invariants[g] = iso_invariant;
+        dilatation += w * jm1;
     }
-    let theta = volume / b.volume_mm3;
+    let theta_m1 = dilatation / b.volume_mm3;
     // U(θ) = κ/2 (θ − 1)²: U' and U''.
-    let du = m.bulk_kpa * (theta - 1.0);
+    let du = m.bulk_kpa * theta_m1;
     let ddu = m.bulk_kpa;
     let mut iso = 0.0;
     let mut gradient = [0.0; 24];
@@ -300,7 +329,7 @@ fn evaluate_portable(
         let c = m.shear_kpa * jm23;
         // The same expressions, summed in the same order, as [`energy`]: the line search
         // compares the two, and near the solution their difference is the decrease it looks for.
-        iso += w * 0.5 * m.shear_kpa * (jm23 * i1 - 3.0);
+        iso += w * 0.5 * m.shear_kpa * iso_invariants[g];
         let gamma = -2.0 / 3.0 * c;
         let alpha = 2.0 / 9.0 * c * i1 + du * j;
         let beta = c * i1 / 3.0 - du * j;
@@ -336,7 +365,7 @@ fn evaluate_portable(
     for (gr, d) in gradient.iter_mut().zip(&dv) {
         *gr += du * d;
     }
-    out.energy = iso + b.volume_mm3 * 0.5 * m.bulk_kpa * (theta - 1.0).powi(2);
+    out.energy = iso + b.volume_mm3 * 0.5 * m.bulk_kpa * theta_m1 * theta_m1;
     out.gradient = gradient;
     if !with_hessian {
         return Ok(());
@@ -491,6 +520,31 @@ mod tests {
                 assert!(
                     (fd - an).abs() < 1e-4 * (1.0 + an.abs()),
                     "hessian {c},{r}: {fd} vs {an}"
+                );
+            }
+        }
+    }
+
+    /// Simple shear u_x = γ y keeps J = 1 and stores μγ²/2 a unit volume exactly (I₁ = 3 + γ²).
+    /// At γ = 1e-7 the energy is 1e-14 of μ: formed as J^(−2/3) I₁ − 3 it would keep a few
+    /// per cent of it (the round-off of 3); the line search needs it to the last digits.
+    #[test]
+    fn a_small_simple_shear_stores_its_closed_form_energy() {
+        let m = material();
+        let size = [1.0, 2.0, 0.5];
+        let b = Box8::new(size);
+        for gamma in [1e-3, 1e-7, 1e-10] {
+            let mut u = [[0.0; 3]; 8];
+            for (a, ua) in u.iter_mut().enumerate() {
+                ua[0] = gamma * size[1] * ((a >> 1) & 1) as f64;
+            }
+            let exact = b.volume_mm3 * 0.5 * m.shear_kpa * gamma * gamma;
+            let alone = energy(&m, &b, &u).unwrap();
+            let full = evaluate(&m, &b, &u, true).unwrap().energy;
+            for e in [alone, full] {
+                assert!(
+                    (e / exact - 1.0).abs() < 1e-12,
+                    "γ {gamma}: {e} against {exact}"
                 );
             }
         }

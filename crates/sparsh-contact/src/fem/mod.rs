@@ -1401,6 +1401,13 @@ impl Fem {
             total.accumulate(&self.stats);
             let force = fields.force_n[2];
             let f = force - target_n;
+            if f.abs() <= 1e-3 * target_n {
+                self.stats = total;
+                if let Some(s) = self.state.as_mut() {
+                    s.offset_mm = guess;
+                }
+                return Ok(fields);
+            }
             let width = hi.map_or(f64::INFINITY, |(x, _)| x - lo.0);
             if width <= 1e-12 * h {
                 // The bracket closed on a jump of the force: no approach gives the load.
@@ -1409,13 +1416,6 @@ impl Fem {
                     iterations: total.newton_iterations,
                     residual: f.abs(),
                 });
-            }
-            if f.abs() <= 1e-3 * target_n {
-                self.stats = total;
-                if let Some(s) = self.state.as_mut() {
-                    s.offset_mm = guess;
-                }
-                return Ok(fields);
             }
             if f < 0.0 {
                 lo = (guess, f);
