@@ -206,7 +206,7 @@ pub fn energy(m: &NeoHookean, b: &Box8, u: &[[f64; 3]; 8]) -> Result<f64, Invert
         if j <= 0.0 || !j.is_finite() {
             return Err(Inverted);
         }
-        let (jm1, iso_invariant) = invariants_from_rest(&f);
+        let [jm1, _, iso_invariant] = invariants_from_rest(&f);
         iso += w * 0.5 * m.shear_kpa * iso_invariant;
         dilatation += w * jm1;
     }
@@ -214,13 +214,13 @@ pub fn energy(m: &NeoHookean, b: &Box8, u: &[[f64; 3]; 8]) -> Result<f64, Invert
     Ok(iso + b.volume_mm3 * 0.5 * m.bulk_kpa * theta_m1 * theta_m1)
 }
 
-/// J − 1 and the isochoric invariant Ī₁ − 3 = J^(−2/3) I₁ − 3 of F = I + H, from H = F − I
-/// (exact in floating point). Both are small near rest; formed from I₁ ≈ 3 and J ≈ 1 they
+/// J − 1, J^(−2/3) − 1 and the isochoric invariant Ī₁ − 3 = J^(−2/3) I₁ − 3 of F = I + H, from H = F − I
+/// (exact in floating point). All three are small near rest; formed from I₁ ≈ 3 and J ≈ 1 they
 /// keep only the absolute round-off of 3, about 1e-16 μ a Gauss point, which near the solution
 /// swamps the energy decrease a line search looks for. Expanded instead:
 /// J − 1 = tr H + ½((tr H)² − tr H²) + det H (exact for 3 × 3), I₁ − 3 = 2 tr H + |H|², and
 /// Ī₁ − 3 = d + 3a + a d with d = I₁ − 3 and a = J^(−2/3) − 1 = expm1(−⅔ ln(1 + (J − 1))).
-fn invariants_from_rest(f: &Mat3) -> (f64, f64) {
+fn invariants_from_rest(f: &Mat3) -> [f64; 3] {
     let mut h = *f;
     for (i, row) in h.iter_mut().enumerate() {
         row[i] -= 1.0;
@@ -237,7 +237,7 @@ fn invariants_from_rest(f: &Mat3) -> (f64, f64) {
     let jm1 = trace + 0.5 * (trace * trace - trace_h2) + det(&h);
     let d = 2.0 * trace + norm2;
     let a = (-2.0 / 3.0 * jm1.ln_1p()).exp_m1();
-    (jm1, d + 3.0 * a + a * d)
+    [jm1, a, d + 3.0 * a + a * d]
 }
 
 /// Energy, gradient and (when `with_hessian`) Hessian of one element into `out`, or
@@ -292,6 +292,7 @@ fn evaluate_portable(
     let mut js = [0.0; 8];
     let mut gs = [[[0.0; 3]; 3]; 8];
     let mut dilatation = 0.0;
+    let mut jm23s = [0.0; 8];
     let mut iso_invariants = [0.0; 8];
     for g in 0..8 {
         let j = det(&fs[g]);
@@ -300,7 +301,8 @@ fn evaluate_portable(
         }
         js[g] = j;
         gs[g] = inverse_transpose(&fs[g], j);
-        let (jm1, iso_invariant) = invariants_from_rest(&fs[g]);
+        let [jm1, jm23_m1, iso_invariant] = invariants_from_rest(&fs[g]);
+        jm23s[g] = 1.0 + jm23_m1;
         iso_invariants[g] = iso_invariant;
         dilatation += w * jm1;
     }
@@ -325,7 +327,7 @@ fn evaluate_portable(
         let (f, gi, j) = (&fs[g], &gs[g], js[g]);
         let grad = &b.grad[g];
         let i1: f64 = f.iter().flatten().map(|x| x * x).sum();
-        let jm23 = j.powf(-2.0 / 3.0);
+        let jm23 = jm23s[g];
         let c = m.shear_kpa * jm23;
         // The same expressions, summed in the same order, as [`energy`]: the line search
         // compares the two, and near the solution their difference is the decrease it looks for.
