@@ -207,6 +207,9 @@ pub fn energy(m: &NeoHookean, b: &Box8, u: &[[f64; 3]; 8]) -> Result<f64, Invert
             return Err(Inverted);
         }
         let [jm1, _, iso_invariant] = invariants_from_rest(&f);
+        if !iso_invariant.is_finite() {
+            return Err(Inverted);
+        }
         iso += w * 0.5 * m.shear_kpa * iso_invariant;
         dilatation += w * jm1;
     }
@@ -214,12 +217,13 @@ pub fn energy(m: &NeoHookean, b: &Box8, u: &[[f64; 3]; 8]) -> Result<f64, Invert
     Ok(iso + b.volume_mm3 * 0.5 * m.bulk_kpa * theta_m1 * theta_m1)
 }
 
-/// J − 1, J^(−2/3) − 1 and the isochoric invariant Ī₁ − 3 = J^(−2/3) I₁ − 3 of F = I + H, from H = F − I
-/// (exact in floating point). All three are small near rest; formed from I₁ ≈ 3 and J ≈ 1 they
-/// keep only the absolute round-off of 3, about 1e-16 μ a Gauss point, which near the solution
-/// swamps the energy decrease a line search looks for. Expanded instead:
+/// J − 1, J^(−2/3) − 1 and the isochoric invariant Ī₁ − 3 = J^(−2/3) I₁ − 3 of F = I + H,
+/// from H = F − I (exact in floating point). All three are small near rest; formed from I₁ ≈ 3
+/// and J ≈ 1 they keep only the absolute round-off of 3, about 1e-16 μ a Gauss point, which near
+/// the solution swamps the energy decrease a line search looks for. Expanded instead:
 /// J − 1 = tr H + ½((tr H)² − tr H²) + det H (exact for 3 × 3), I₁ − 3 = 2 tr H + |H|², and
 /// Ī₁ − 3 = d + 3a + a d with d = I₁ − 3 and a = J^(−2/3) − 1 = expm1(−⅔ ln(1 + (J − 1))).
+/// Not finite where round-off puts J − 1 at or below −1 (J ≈ 0): callers report inversion.
 fn invariants_from_rest(f: &Mat3) -> [f64; 3] {
     let mut h = *f;
     for (i, row) in h.iter_mut().enumerate() {
@@ -302,6 +306,9 @@ fn evaluate_portable(
         js[g] = j;
         gs[g] = inverse_transpose(&fs[g], j);
         let [jm1, jm23_m1, iso_invariant] = invariants_from_rest(&fs[g]);
+        if !iso_invariant.is_finite() {
+            return Err(Inverted);
+        }
         jm23s[g] = 1.0 + jm23_m1;
         iso_invariants[g] = iso_invariant;
         dilatation += w * jm1;
