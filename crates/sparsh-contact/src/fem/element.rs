@@ -206,10 +206,7 @@ pub fn energy(m: &NeoHookean, b: &Box8, u: &[[f64; 3]; 8]) -> Result<f64, Invert
         if j <= 0.0 || !j.is_finite() {
             return Err(Inverted);
         }
-        let [jm1, _, iso_invariant] = invariants_from_rest(&f);
-        if !iso_invariant.is_finite() {
-            return Err(Inverted);
-        }
+        let [jm1, _, iso_invariant] = invariants_from_rest(&f)?;
         iso += w * 0.5 * m.shear_kpa * iso_invariant;
         dilatation += w * jm1;
     }
@@ -223,8 +220,8 @@ pub fn energy(m: &NeoHookean, b: &Box8, u: &[[f64; 3]; 8]) -> Result<f64, Invert
 /// the solution swamps the energy decrease a line search looks for. Expanded instead:
 /// J − 1 = tr H + ½((tr H)² − tr H²) + det H (exact for 3 × 3), I₁ − 3 = 2 tr H + |H|², and
 /// Ī₁ − 3 = d + 3a + a d with d = I₁ − 3 and a = J^(−2/3) − 1 = expm1(−⅔ ln(1 + (J − 1))).
-/// Not finite where round-off puts J − 1 at or below −1 (J ≈ 0): callers report inversion.
-fn invariants_from_rest(f: &Mat3) -> [f64; 3] {
+/// [`Inverted`] where round-off puts J − 1 at or below −1 (J ≈ 0, past the caller's J > 0).
+fn invariants_from_rest(f: &Mat3) -> Result<[f64; 3], Inverted> {
     let mut h = *f;
     for (i, row) in h.iter_mut().enumerate() {
         row[i] -= 1.0;
@@ -241,7 +238,12 @@ fn invariants_from_rest(f: &Mat3) -> [f64; 3] {
     let jm1 = trace + 0.5 * (trace * trace - trace_h2) + det(&h);
     let d = 2.0 * trace + norm2;
     let a = (-2.0 / 3.0 * jm1.ln_1p()).exp_m1();
-    [jm1, a, d + 3.0 * a + a * d]
+    let iso = d + 3.0 * a + a * d;
+    if iso.is_finite() {
+        Ok([jm1, a, iso])
+    } else {
+        Err(Inverted)
+    }
 }
 
 /// Energy, gradient and (when `with_hessian`) Hessian of one element into `out`, or
@@ -296,8 +298,7 @@ fn evaluate_portable(
     let mut js = [0.0; 8];
     let mut gs = [[[0.0; 3]; 3]; 8];
     let mut dilatation = 0.0;
-    let mut jm23s = [0.0; 8];
-    let mut iso_invariants = [0.0; 8];
+    let mut invariants = [[0.0; 3]; 8];
     for g in 0..8 {
         let j = det(&fs[g]);
         if j <= 0.0 || !j.is_finite() {
@@ -305,13 +306,8 @@ fn evaluate_portable(
         }
         js[g] = j;
         gs[g] = inverse_transpose(&fs[g], j);
-        let [jm1, jm23_m1, iso_invariant] = invariants_from_rest(&fs[g]);
-        if !iso_invariant.is_finite() {
-            return Err(Inverted);
-        }
-        jm23s[g] = 1.0 + jm23_m1;
-        iso_invariants[g] = iso_invariant;
-        dilatation += w * jm1;
+        invariants[g] = invariants_from_rest(&fs[g])?;
+        dilatation += w * invariants[g][0];
     }
     let theta_m1 = dilatation / b.volume_mm3;
     // U(θ) = κ/2 (θ − 1)²: U' and U''.
@@ -334,11 +330,12 @@ fn evaluate_portable(
         let (f, gi, j) = (&fs[g], &gs[g], js[g]);
         let grad = &b.grad[g];
         let i1: f64 = f.iter().flatten().map(|x| x * x).sum();
-        let jm23 = jm23s[g];
+        let [_, jm23_m1, iso_invariant] = invariants[g];
+        let jm23 = 1.0 + jm23_m1;
         let c = m.shear_kpa * jm23;
         // The same expressions, summed in the same order, as [`energy`]: the line search
         // compares the two, and near the solution their difference is the decrease it looks for.
-        iso += w * 0.5 * m.shear_kpa * iso_invariants[g];
+        iso += w * 0.5 * m.shear_kpa * iso_invariant;
         let gamma = -2.0 / 3.0 * c;
         let alpha = 2.0 / 9.0 * c * i1 + du * j;
         let beta = c * i1 / 3.0 - du * j;
