@@ -242,6 +242,48 @@ fn tacbench_runs_every_task_and_resumes() {
         std::fs::read(out_dir.join("results.csv")).unwrap(),
         csv_before
     );
+    // --task: only the named tasks run and are reported, each row as in the run of every
+    // task; the same run resumed without it adds the rest and reports what that run did
+    let by_task_dir = tmp.path().join("run_by_task");
+    let by_task = |extra: &[&str]| {
+        let mut a = vec![
+            "tacbench",
+            "--config",
+            cfg.to_str().unwrap(),
+            "--out",
+            by_task_dir.to_str().unwrap(),
+            "--quick",
+        ];
+        a.extend_from_slice(extra);
+        sparsh(&a)
+    };
+    let out = by_task(&["--task", "pose", "--task", "force"]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let all = String::from_utf8(csv_before.clone()).unwrap();
+    let part = std::fs::read_to_string(by_task_dir.join("results.csv")).unwrap();
+    let part_tasks: std::collections::BTreeSet<&str> = part
+        .lines()
+        .skip(1)
+        .map(|l| l.split(',').next().unwrap())
+        .collect();
+    assert_eq!(
+        part_tasks.into_iter().collect::<Vec<_>>(),
+        ["force", "pose"]
+    );
+    for line in part.lines() {
+        assert!(
+            all.lines().any(|l| l == line),
+            "not in the full run: {line}"
+        );
+    }
+    let out = by_task(&["--resume"]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    assert_eq!(
+        std::fs::read(by_task_dir.join("results.csv")).unwrap(),
+        csv_before
+    );
+    // a task the config does not have
+    assert_user_error(&by_task(&["--resume", "--task", "forse"]), "--task forse");
     // other weights under the same name: the recorded units are not theirs
     let recipe = sparsh_ssl::recipe::Recipe::parse(RECIPE).unwrap();
     let other = sparsh_bench::encoders::random_encoder(&recipe, 6).unwrap();

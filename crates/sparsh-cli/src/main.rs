@@ -471,6 +471,11 @@ enum Command {
         /// Train nothing: rewrite the report of the run in --out from the units it finished.
         #[arg(long, conflicts_with = "resume")]
         report_only: bool,
+        /// Run only this task of the config (force, slip, pose, texture or grasp; repeat for
+        /// several): a run can be done a few tasks at a time, each later one with --resume.
+        /// The report then shows these tasks; --report-only without it shows every finished one.
+        #[arg(long = "task", value_name = "KIND")]
+        tasks: Vec<String>,
         #[command(flatten)]
         device: DeviceArgs,
     },
@@ -870,6 +875,7 @@ fn run(cli: Cli) -> Result<()> {
             quick,
             resume,
             report_only,
+            tasks,
             device,
         } => tacbench::tacbench(
             &config,
@@ -877,6 +883,7 @@ fn run(cli: Cli) -> Result<()> {
             quick,
             resume,
             report_only,
+            &tasks,
             &device.choose_one("tacbench")?,
         ),
         Command::Ablate {

@@ -8,6 +8,7 @@ use anyhow::{Context, Result, bail};
 use sha2::{Digest, Sha256};
 use sparsh_bench::tacbench::config::{BenchConfig, TaskConfig};
 use sparsh_bench::tacbench::run::{RunOptions, run};
+use sparsh_bench::tacbench::tasks::TaskKind;
 use sparsh_ssl::device::Devices;
 
 use crate::dataset::{DeviceArg, generate};
@@ -20,9 +21,11 @@ pub fn tacbench(
     quick: bool,
     resume: bool,
     report_only: bool,
+    tasks: &[String],
     device: &Devices,
 ) -> Result<()> {
     let cfg = BenchConfig::load(config)?;
+    let tasks = chosen_tasks(&cfg, config, tasks)?;
     // the pretrained encoders load and fit their recipes before anything is written
     sparsh_bench::tacbench::run::encoders(&cfg, Some(0))?;
     let text = std::fs::read_to_string(config).with_context(|| config.display().to_string())?;
@@ -108,6 +111,7 @@ pub fn tacbench(
         resume,
         quick,
         report_only,
+        tasks,
         device: device.main().clone(),
     };
     let budgets = if quick {
@@ -133,6 +137,31 @@ pub fn tacbench(
         sparsh_bench::tacbench::report::markdown(&rows, &budgets)
     );
     Ok(())
+}
+
+/// The config's tasks that `--task` names (`None` when it names none); a name the config has
+/// no task of is a one-line error.
+fn chosen_tasks(
+    cfg: &BenchConfig,
+    config: &Path,
+    names: &[String],
+) -> Result<Option<Vec<TaskKind>>> {
+    if names.is_empty() {
+        return Ok(None);
+    }
+    let mut chosen = Vec::new();
+    for name in names {
+        let Some(task) = cfg.task.iter().find(|t| t.kind.name() == name) else {
+            let have: Vec<&str> = cfg.task.iter().map(|t| t.kind.name()).collect();
+            bail!(
+                "{}: --task {name}: the config has no such task (it has: {})",
+                config.display(),
+                have.join(", ")
+            );
+        };
+        chosen.push(task.kind);
+    }
+    Ok(Some(chosen))
 }
 
 /// Whether `dir` holds a dataset not written by `sparsh generate` (an official layout).

@@ -147,6 +147,10 @@ pub struct ProbeConfig {
     /// Probe seeds per (task, encoder, budget).
     #[serde(default = "one")]
     pub seeds: usize,
+    /// A frozen probe stops after this many epochs without a better validation score (default
+    /// 0: it runs every epoch). The learning rate still decays over `epochs`.
+    #[serde(default)]
+    pub patience: usize,
 }
 
 /// A TacBench run description.
@@ -189,6 +193,7 @@ impl Default for ProbeConfig {
             batch_size: batch(),
             lr: probe_lr(),
             seeds: 1,
+            patience: 0,
         }
     }
 }
@@ -443,5 +448,47 @@ impl BenchConfig {
     /// Loads a recipe named by this config, naming the config key on failure.
     pub fn recipe(&self, path: &Path, field: &str) -> Result<Recipe, Error> {
         Recipe::load(path).map_err(|e| Error::config(&self.path, field, e))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_shipped_config_loads_and_names_files_that_exist() {
+        // tacbench/*.toml but T1A's fields_*.toml (`sparsh fieldprobe` configs): each parses
+        // and passes its checks, and each task's scene and each recipe it names is a file of
+        // the checkout (the datasets and pretrained weights are made by the commands in its
+        // header, so they are not checked)
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tacbench");
+        let mut configs: Vec<PathBuf> = std::fs::read_dir(&dir)
+            .unwrap()
+            .map(|e| e.unwrap().path())
+            .filter(|p| p.extension().is_some_and(|x| x == "toml"))
+            .filter(|p| {
+                !p.file_name()
+                    .unwrap()
+                    .to_string_lossy()
+                    .starts_with("fields")
+            })
+            .collect();
+        configs.sort();
+        assert!(configs.len() >= 10, "{configs:?}");
+        for path in configs {
+            let cfg = BenchConfig::load(&path).unwrap_or_else(|e| panic!("{e}"));
+            let recipes = cfg.encoder.iter().map(|e| &e.recipe);
+            let recipes = recipes.chain(cfg.random.iter().map(|r| &r.recipe));
+            let recipes = recipes.chain(cfg.baselines.iter().map(|b| &b.recipe));
+            let scenes = cfg.task.iter().filter_map(|t| t.scene.as_ref());
+            for f in recipes.chain(scenes) {
+                assert!(
+                    f.is_file(),
+                    "{}: {} is missing",
+                    path.display(),
+                    f.display()
+                );
+            }
+        }
     }
 }

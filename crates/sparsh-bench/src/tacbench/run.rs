@@ -299,6 +299,9 @@ pub struct RunOptions {
     pub quick: bool,
     /// Train nothing: report the units already recorded (tasks without any are left out).
     pub report_only: bool,
+    /// Run only these tasks of the config (`None`: all); the others are skipped, so a run
+    /// can be done a few tasks at a time and resumed with the rest.
+    pub tasks: Option<Vec<TaskKind>>,
     /// Where the encoders run and the heads train (a device without autodiff; the CPU's
     /// `Device::flex()` by default). Every model is drawn on the CPU under its seed and moved.
     pub device: Device,
@@ -496,7 +499,9 @@ pub fn run(
     let mut runs = BTreeMap::new();
     let mut loaded: BTreeMap<PathBuf, LabelledData> = BTreeMap::new();
     for (ti, task) in cfg.task.iter().enumerate() {
-        if opts.report_only && !opts.out.join("units").join(task.kind.name()).is_dir() {
+        let chosen = opts.tasks.as_ref().is_none_or(|t| t.contains(&task.kind));
+        let recorded = opts.out.join("units").join(task.kind.name()).is_dir();
+        if !chosen || (opts.report_only && !recorded) {
             continue;
         }
         ensure_data(task)?;
@@ -767,7 +772,7 @@ pub fn run(
                             batch_size: cfg.probe.batch_size,
                             lr: cfg.probe.lr,
                             seed: fit_seed,
-                            patience: 0,
+                            patience: if opts.quick { 0 } else { cfg.probe.patience },
                         },
                         &opts.device,
                     ),
